@@ -1,0 +1,224 @@
+"""The `ffcgs` command: one subcommand per job, options from frozen config dataclasses.
+
+Every subcommand takes `--config FILE.toml` (sections as in `configs/`) and then command-line overrides
+(`ffcgs sdf mug --res 64`). Bad input ends with one line on stderr and exit status 2, never a traceback.
+"""
+
+import dataclasses
+import sys
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+import tyro
+
+from ffcgs_jax.config import RenderConfig, SDFConfig, check_all, from_dict
+from ffcgs_jax.errors import FfcgsError
+
+
+@dataclasses.dataclass(frozen=True)
+class ObjectsCmd:
+    """List the built-in objects (usable by name wherever an object is asked for)."""
+
+
+@dataclasses.dataclass(frozen=True)
+class SdfCmd:
+    """Write the Gradient-SDF of an object (built-in name or mesh file) to an .npz file.
+
+    Attributes:
+        object: built-in name (see `ffcgs objects`) or a mesh file (obj, stl, ply, off, glb).
+        out: output .npz (grid (R,R,R,4): distance and gradient; origin; voxel_size; table_z).
+        png: also draw mid-slices of the distance field to this PNG.
+        sdf: grid settings.
+    """
+
+    object: tyro.conf.Positional[str] = tyro.MISSING
+    out: str = "sdf.npz"
+    png: str | None = None
+    sdf: SDFConfig = SDFConfig()
+
+
+@dataclasses.dataclass(frozen=True)
+class HandCmd:
+    """Pose the hand (optionally beside an object) and draw it to a PNG; print its fingertip contact points.
+
+    Attributes:
+        q: channel values in hand-spec order (rad), e.g. 9 numbers for the SVH; default all 0 (open hand).
+        close: when q is not given, set every channel to lower + close * (upper - lower), 0..1.
+        wrist: wrist pose as X Y Z ROLL PITCH YAW (metres, radians; URDF fixed-axis rpy). Default: the identity,
+            or with an object a side pose with the palm facing the object 3 cm away.
+        object: built-in name or mesh file to draw with the hand; it rests on a table at its lowest point.
+        hand: built-in hand name or a hand-spec TOML.
+        png: output picture.
+        views: any of front, side, top.
+        scale: multiplies the object's coordinates (0.001 for millimetre meshes).
+    """
+
+    q: tuple[float, ...] | None = None
+    close: float = 0.0
+    wrist: tuple[float, float, float, float, float, float] | None = None
+    object: str | None = None
+    hand: str = "svh"
+    png: str = "hand.png"
+    views: tuple[str, ...] = ("front", "side", "top")
+    scale: float = 1.0
+    render: RenderConfig = RenderConfig()
+
+
+def run_objects(cmd: ObjectsCmd) -> None:
+    from ffcgs_jax import objects
+
+    print(f"{'name':<10} {'faces':>6} {'extents (cm)':>20} {'volume (cm3)':>13} {'watertight':>10}")
+    for o in objects.describe():
+        ext = " x ".join(f"{e * 100:.1f}" for e in o["extents"])
+        print(f"{o['name']:<10} {o['faces']:>6} {ext:>20} {o['volume'] * 1e6:>13.1f} {str(o['watertight']):>10}")
+
+
+def run_sdf(cmd: SdfCmd) -> None:
+    from ffcgs_jax import mesh_io, sdf
+
+    mesh = mesh_io.load_mesh(cmd.object, scale=cmd.sdf.scale)
+    t0 = time.perf_counter()
+    grid = sdf.build_sdf(mesh, cmd.sdf)
+    dt = time.perf_counter() - t0
+    sdf.save(grid, cmd.out)
+    r = cmd.sdf.res
+    print(f"wrote {cmd.out}: {r}^3 Gradient-SDF of {cmd.object}, voxel {float(grid.voxel_size) * 1000:.2f} mm, "
+          f"built in {dt:.2f} s")
+    if cmd.png:
+        from ffcgs_jax.render import save_png
+        from ffcgs_jax.sdf_plot import slices_image
+
+        save_png(slices_image(grid), cmd.png)
+        print(f"wrote {cmd.png}")
+
+
+def run_hand(cmd: HandCmd) -> None:
+    from ffcgs_jax import kinematics as K
+    from ffcgs_jax import render, scene
+
+    if not 0 <= cmd.close <= 1:
+        raise FfcgsError(f"--close must be in [0, 1], got {cmd.close}")
+    unknown = [v for v in cmd.views if v not in render.VIEWS]
+    if unknown or not cmd.views:
+        raise FfcgsError(f"--views: unknown view(s) {unknown}; valid: {', '.join(render.VIEWS)}")
+    hand = K.load_hand(cmd.hand)
+    lo, hi = np.asarray(hand.lower), np.asarray(hand.upper)
+    q = K.check_q(hand, cmd.q, "--q") if cmd.q is not None else lo + cmd.close * (hi - lo)
+    outside = np.flatnonzero((q < lo - 1e-9) | (q > hi + 1e-9))
+    if outside.size:
+        names = [hand.spec.channel_names[i] for i in outside]
+        raise FfcgsError(f"--q outside the joint limits for channel(s) {names}: "
+                         + ", ".join(f"{n} in [{lo[i]:.4g}, {hi[i]:.4g}]" for n, i in zip(names, outside)))
+    obj = None
+    if cmd.object is not None:
+        from ffcgs_jax import mesh_io
+
+        obj = mesh_io.load_mesh(cmd.object, scale=cmd.scale)
+    if cmd.wrist is not None:
+        T = pose_from_xyzrpy(cmd.wrist)
+    elif obj is not None:
+        m, d = scene.build_scene(hand.spec, np.eye(4))
+        scene.set_channels(m, d, np.asarray(hand.coupling), q)
+        T = scene.default_wrist_pose(obj, d.site_xpos[hand.palm_site_id])
+    else:
+        T = np.eye(4)
+    # One picture needs one FK: MuJoCo C gives it without JIT compilation (tests hold MJX equal to it).
+    m, d = scene.build_scene(hand.spec, T, obj, table_z=None if obj is None else float(obj.bounds[0, 2]))
+    scene.set_channels(m, d, np.asarray(hand.coupling), q)
+    image, backend = render.render_scene(m, d, cmd.render.width, cmd.render.height, cmd.render.backend, cmd.views)
+    render.save_png(image, cmd.png)
+    contacts = d.site_xpos[list(hand.contact_site_ids)]
+    print(f"{'contact site':<14} {'x (m)':>9} {'y (m)':>9} {'z (m)':>9}")
+    for name, p in zip(hand.spec.contact_sites, contacts):
+        print(f"{name:<14} {p[0]:>9.4f} {p[1]:>9.4f} {p[2]:>9.4f}")
+    print(f"wrote {cmd.png} ({backend} renderer)")
+
+
+def pose_from_xyzrpy(v) -> np.ndarray:
+    from scipy.spatial.transform import Rotation
+
+    v = np.asarray(v, float)
+    if v.shape != (6,) or not np.isfinite(v).all():
+        raise FfcgsError(f"--wrist needs 6 finite numbers X Y Z ROLL PITCH YAW, got {v.tolist()}")
+    T = np.eye(4)
+    T[:3, :3] = Rotation.from_euler("xyz", v[3:]).as_matrix()
+    T[:3, 3] = v[:3]
+    return T
+
+
+COMMANDS: dict[str, tuple[type, Callable]] = {
+    "objects": (ObjectsCmd, run_objects),
+    "sdf": (SdfCmd, run_sdf),
+    "hand": (HandCmd, run_hand),
+}
+
+
+def _usage() -> str:
+    lines = ["usage: ffcgs COMMAND [--config FILE.toml] [options]", "", "commands:"]
+    for name, (cls, _) in COMMANDS.items():
+        lines.append(f"  {name:<9} {(cls.__doc__ or '').strip().splitlines()[0]}")
+    lines += ["", "`ffcgs COMMAND --help` lists a command's options."]
+    return "\n".join(lines)
+
+
+def _split_config(argv: list[str]) -> tuple[str | None, list[str]]:
+    rest, path = [], None
+    it = iter(argv)
+    for a in it:
+        if a == "--config":
+            path = next(it, None)
+            if path is None:
+                raise FfcgsError("--config needs a file path")
+        elif a.startswith("--config="):
+            path = a.split("=", 1)[1]
+        else:
+            rest.append(a)
+    return path, rest
+
+
+def parse(argv: list[str]):
+    """Parse `ffcgs COMMAND ...` into (run function, command dataclass)."""
+    if not argv or argv[0] in ("-h", "--help"):
+        print(_usage())
+        raise SystemExit(0 if argv else 2)
+    name, argv = argv[0], argv[1:]
+    if name not in COMMANDS:
+        raise FfcgsError(f"unknown command {name!r}; commands: {', '.join(COMMANDS)}")
+    cls, fn = COMMANDS[name]
+    path, argv = _split_config(argv)
+    default = cls()
+    if path is not None:
+        import tomllib
+
+        p = Path(path)
+        if not p.is_file():
+            raise FfcgsError(f"config file not found: {p}")
+        try:
+            data = tomllib.loads(p.read_text())
+        except tomllib.TOMLDecodeError as e:
+            raise FfcgsError(f"config file {p} is not valid TOML: {e}") from None
+        default = from_dict(cls, data)
+    cmd = tyro.cli(cls, default=default, args=argv, prog=f"ffcgs {name}",
+                   config=(tyro.conf.OmitArgPrefixes,), description=cls.__doc__)
+    check_all(cmd)
+    return fn, cmd
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = sys.argv[1:] if argv is None else argv
+    try:
+        fn, cmd = parse(argv)
+        fn(cmd)
+    except FfcgsError as e:
+        print(f"ffcgs: error: {e}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("ffcgs: interrupted", file=sys.stderr)
+        return 130
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

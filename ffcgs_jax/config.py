@@ -1,0 +1,123 @@
+"""Frozen dataclass configs read from TOML, with unknown keys and out-of-range values rejected.
+
+Every command's options are one nested frozen dataclass. `load(cls, path)` reads a TOML file into it; the CLI
+then lets any field be overridden (`--sdf.res 64`). Frozen dataclasses hash, so a config can be a static jit
+argument.
+"""
+
+import dataclasses
+import tomllib
+import typing
+from pathlib import Path
+from typing import Any, TypeVar
+
+from ffcgs_jax.errors import FfcgsError
+
+T = TypeVar("T")
+
+
+@dataclasses.dataclass(frozen=True)
+class SDFConfig:
+    """How a mesh becomes a Gradient-SDF grid.
+
+    Attributes:
+        res: voxels along each axis of the cube (16-128; the paper uses 32).
+        margin: free space around the object on each side, as a fraction of its largest extent. 0.15 leaves room
+            for fingertips that approach from outside while keeping voxels small.
+        min_margin: lower bound on that margin in metres, so tiny objects still get a band of free space.
+        scale: multiplies the mesh's coordinates on load (0.001 turns millimetres into metres).
+    """
+
+    res: int = 32
+    margin: float = 0.15
+    min_margin: float = 0.01
+    scale: float = 1.0
+
+    def check(self) -> None:
+        _range("sdf.res", self.res, 16, 128)
+        _range("sdf.margin", self.margin, 0.0, 2.0)
+        _range("sdf.min_margin", self.min_margin, 0.0, 1.0)
+        if not self.scale > 0:
+            raise FfcgsError(f"sdf.scale must be > 0, got {self.scale}")
+
+
+@dataclasses.dataclass(frozen=True)
+class RenderConfig:
+    """Pictures of the hand (and object).
+
+    Attributes:
+        width, height: size of one view in pixels.
+        backend: "auto" tries MuJoCo's OpenGL renderer and falls back to the built-in software rasteriser;
+            "mujoco" or "software" force one.
+    """
+
+    width: int = 480
+    height: int = 480
+    backend: str = "auto"
+
+    def check(self) -> None:
+        _range("render.width", self.width, 64, 4096)
+        _range("render.height", self.height, 64, 4096)
+        if self.backend not in ("auto", "mujoco", "software"):
+            raise FfcgsError(f"render.backend must be one of auto, mujoco, software; got {self.backend!r}")
+
+
+def _range(name: str, value: float, lo: float, hi: float) -> None:
+    if not lo <= value <= hi:
+        raise FfcgsError(f"{name} must be in [{lo}, {hi}], got {value}")
+
+
+def from_dict(cls: type[T], data: dict[str, Any], where: str = "") -> T:
+    """Build dataclass `cls` from a nested dict, naming any unknown key and listing the valid ones."""
+    if not isinstance(data, dict):
+        raise FfcgsError(f"config section {where or '<top>'} must be a table, got {type(data).__name__}")
+    fields = {f.name: f for f in dataclasses.fields(cls)}
+    hints = typing.get_type_hints(cls)
+    unknown = sorted(set(data) - set(fields))
+    if unknown:
+        raise FfcgsError(
+            f"unknown config key(s) {', '.join(where + k for k in unknown)}; "
+            f"valid keys{' in ' + where.rstrip('.') if where else ''}: {', '.join(sorted(fields))}"
+        )
+    kwargs = {}
+    for name, value in data.items():
+        hint = hints[name]
+        if dataclasses.is_dataclass(hint):
+            kwargs[name] = from_dict(hint, value, f"{where}{name}.")
+        else:
+            kwargs[name] = _coerce(hint, value, where + name)
+    obj = cls(**kwargs)
+    check_all(obj)
+    return obj
+
+
+def _coerce(hint: Any, value: Any, name: str) -> Any:
+    if hint is float and isinstance(value, int) and not isinstance(value, bool):
+        return float(value)
+    if hint in (int, float, str, bool) and not isinstance(value, hint):
+        raise FfcgsError(f"config key {name} must be {hint.__name__}, got {value!r}")
+    if typing.get_origin(hint) is tuple:
+        return tuple(value)
+    return value
+
+
+def check_all(obj: Any) -> None:
+    """Run `check()` on a config and on every nested config, so CLI overrides are validated too."""
+    for f in dataclasses.fields(obj):
+        sub = getattr(obj, f.name)
+        if dataclasses.is_dataclass(sub):
+            check_all(sub)
+    if hasattr(obj, "check"):
+        obj.check()
+
+
+def load(cls: type[T], path: str | Path) -> T:
+    """Read a TOML file into config class `cls` (missing keys keep their defaults)."""
+    path = Path(path)
+    if not path.is_file():
+        raise FfcgsError(f"config file not found: {path}")
+    try:
+        data = tomllib.loads(path.read_text())
+    except tomllib.TOMLDecodeError as e:
+        raise FfcgsError(f"config file {path} is not valid TOML: {e}") from None
+    return from_dict(cls, data)
