@@ -62,7 +62,7 @@ class RenderConfig:
             raise FfcgsError(f"render.backend must be one of auto, mujoco, software; got {self.backend!r}")
 
 
-def _range(name: str, value: float, lo: float, hi: float) -> None:
+def _range(name: str, value: int | float, lo: int | float, hi: int | float) -> None:
     if not lo <= value <= hi:
         raise FfcgsError(f"{name} must be in [{lo}, {hi}], got {value}")
 
