@@ -7,6 +7,7 @@ Every subcommand takes `--config FILE.toml` (sections as in `configs/`) and then
 import dataclasses
 import sys
 import time
+import warnings
 from collections.abc import Callable
 from pathlib import Path
 
@@ -47,7 +48,7 @@ class HandCmd:
         q: channel values in hand-spec order (rad), e.g. 9 numbers for the SVH; default all 0 (open hand).
         close: when q is not given, set every channel to lower + close * (upper - lower), 0..1.
         wrist: wrist pose as X Y Z ROLL PITCH YAW (metres, radians; URDF fixed-axis rpy). Default: the identity,
-            or with an object a side pose with the palm facing the object 3 cm away.
+            or with an object the palm facing down 3 cm above it.
         object: built-in name or mesh file to draw with the hand; it rests on a table at its lowest point.
         hand: built-in hand name or a hand-spec TOML.
         png: output picture.
@@ -121,7 +122,7 @@ def run_hand(cmd: HandCmd) -> None:
     elif obj is not None:
         m, d = scene.build_scene(hand.spec, np.eye(4))
         scene.set_channels(m, d, np.asarray(hand.coupling), q)
-        T = scene.default_wrist_pose(obj, d.site_xpos[hand.palm_site_id])
+        T = scene.default_wrist_pose(obj, d.site_xpos[hand.palm_site_id], np.asarray(hand.palm_normal))
     else:
         T = np.eye(4)
     # One picture needs one FK: MuJoCo C gives it without JIT compilation (tests hold MJX equal to it).
@@ -206,8 +207,13 @@ def parse(argv: list[str]):
     return fn, cmd
 
 
+def _one_line_warning(message, category, filename, lineno, file=None, line=None):
+    print(f"ffcgs: warning: {message}", file=sys.stderr if file is None else file)
+
+
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else argv
+    warnings.showwarning = _one_line_warning  # a user needs the message, not our source line
     try:
         fn, cmd = parse(argv)
         fn(cmd)

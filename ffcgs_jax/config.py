@@ -67,10 +67,10 @@ def _range(name: str, value: int | float, lo: int | float, hi: int | float) -> N
         raise FfcgsError(f"{name} must be in [{lo}, {hi}], got {value}")
 
 
-def from_dict(cls: type[T], data: dict[str, Any], where: str = "") -> T:
+def from_dict(cls: type[T], data: Any, where: str = "") -> T:
     """Build dataclass `cls` from a nested dict, naming any unknown key and listing the valid ones."""
     if not isinstance(data, dict):
-        raise FfcgsError(f"config section {where or '<top>'} must be a table, got {type(data).__name__}")
+        raise FfcgsError(f"config section {where.rstrip('.') or '<top>'} must be a table, got {type(data).__name__}")
     fields = {f.name: f for f in dataclasses.fields(cls)}
     hints = typing.get_type_hints(cls)
     unknown = sorted(set(data) - set(fields))

@@ -53,15 +53,20 @@ def set_channels(m: mujoco.MjModel, d: mujoco.MjData, coupling: np.ndarray, q: n
     mujoco.mj_kinematics(m, d)
 
 
-def default_wrist_pose(obj: trimesh.Trimesh, palm_center: np.ndarray, standoff: float = 0.03) -> np.ndarray:
-    """A side grasp pose for pictures: fingers up (+z), palm facing +y toward the object's centre.
+def default_wrist_pose(
+    obj: trimesh.Trimesh, palm_center: np.ndarray, palm_normal: np.ndarray, standoff: float = 0.03
+) -> np.ndarray:
+    """A top-down pose for pictures: the palm faces down (-z) from `standoff` metres above the object's top.
 
-    The palm centre sits `standoff` metres outside the object's bounding box, at the height of the box centre.
-    This is a viewing default, not a grasp sampler.
+    The hand is turned by the smallest rotation that takes its palm normal (root frame) to -z, then a quarter
+    turn about z; the palm centre
+    (root frame) is put above the centre of the object's bounding box. A viewing default, not a grasp sampler.
     """
     lo, hi = obj.bounds
-    c = (lo + hi) / 2
-    target = np.array([c[0], lo[1] - standoff, c[2]])
-    T = np.eye(4)  # hand frame: palm normal +y, fingers +z, thumb -x, which already faces +y
-    T[:3, 3] = target - palm_center
+    R, _ = Rotation.align_vectors([[0.0, 0.0, -1.0]], [palm_normal])
+    T = np.eye(4)
+    # then a quarter turn about z, so the default front camera (looking along +y) sees the hand side-on
+    T[:3, :3] = Rotation.from_euler("z", -np.pi / 2).as_matrix() @ R.as_matrix()
+    target = np.array([(lo[0] + hi[0]) / 2, (lo[1] + hi[1]) / 2, hi[2] + standoff])
+    T[:3, 3] = target - T[:3, :3] @ palm_center
     return T
