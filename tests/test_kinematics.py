@@ -290,3 +290,17 @@ def test_input_checks(svh):
     with pytest.raises(FfcgsError, match=r"shape \(9,\)"):
         K.check_q(svh, np.zeros(7))
     assert K.check_wrist_poses(random_poses(np.random.default_rng(0), 3)).shape == (3, 4, 4)
+
+
+@pytest.mark.parametrize("frac", [0.2, 0.5, 0.9])
+def test_simulated_actuators_and_equalities_reproduce_the_coupling(svh, frac):
+    """In MuJoCo physics (gravity off) the 9 position actuators plus the equality constraints settle the 20 joints
+    at coupling @ ctrl: the MJCF expresses the same coupling that the kinematics apply."""
+    m = svh.spec.mj_model()
+    m.opt.gravity[:] = 0
+    d = mujoco.MjData(m)
+    ctrl = np.asarray(svh.lower) + frac * np.asarray(svh.q_range)
+    d.ctrl[:] = ctrl
+    for _ in range(3000):  # 6 s of simulated time
+        mujoco.mj_step(m, d)
+    np.testing.assert_allclose(d.qpos, np.asarray(svh.coupling) @ ctrl, atol=1e-6)
