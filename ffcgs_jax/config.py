@@ -62,6 +62,66 @@ class RenderConfig:
             raise FfcgsError(f"render.backend must be one of auto, mujoco, software; got {self.backend!r}")
 
 
+@dataclasses.dataclass(frozen=True)
+class EnergyConfig:
+    """E = E_g + a_c E_c + a_q E_q (+ a_pen P), eq. 5 of the paper.
+
+    Attributes:
+        mu: friction coefficient of the linearised cone (paper: 0.2).
+        cone_edges: m, edges of the polyhedral friction cone (8).
+        basis_size: K directions on the 6-D unit sphere for the Q-distance LP (64: +-e_i and 52 spread ones; the
+            gauge then stays within a few per cent of the Euclidean distance while the LP stays small).
+        d0: E_c offset: 0 as in the paper's simulation, 0.005 for its real-robot setting (a slight squeeze).
+        a_c, a_q: weights of E_c (metres) and E_q (paper: 5 and 0.5).
+        a_pen: weight of the whole-hand penetration penalty (mean squared sphere depth, metres^2); 0 = paper.
+        normal_grad: let gradients flow through the contact normals (the paper holds them fixed, dn/dc = 0).
+    """
+
+    mu: float = 0.2
+    cone_edges: int = 8
+    basis_size: int = 64
+    d0: float = 0.0
+    a_c: float = 5.0
+    a_q: float = 0.5
+    a_pen: float = 0.0
+    normal_grad: bool = False
+
+    def check(self) -> None:
+        _range("energy.mu", self.mu, 0.0, 2.0)
+        _range("energy.cone_edges", self.cone_edges, 3, 64)
+        _range("energy.basis_size", self.basis_size, 12, 1024)
+        _range("energy.d0", self.d0, -0.05, 0.05)
+        for name in ("a_c", "a_q", "a_pen"):
+            _range(f"energy.{name}", getattr(self, name), 0.0, 1e6)
+
+
+@dataclasses.dataclass(frozen=True)
+class OptimConfig:
+    """Algorithm 1: gradient descent on the channels q from q = 0, with a linearly decaying step.
+
+    Attributes:
+        iters: T, descent steps (paper: 50).
+        step, step_end: step size at the first and the last iteration (linear decay in between; rad per unit of
+            gradient).
+        eps_g: a pose stops early once E_g < eps_g ...
+        eps_c: ... and its fingertips are on the surface (E_c < eps_c metres). The paper stops on E_g alone; with
+            normals taken from the SDF away from the surface, E_g can vanish before the fingers touch anything.
+    """
+
+    iters: int = 50
+    step: float = 1.0
+    step_end: float = 0.1
+    eps_g: float = 1e-3
+    eps_c: float = 1e-3
+
+    def check(self) -> None:
+        _range("optim.iters", self.iters, 1, 100000)
+        _range("optim.step", self.step, 0.0, 1e3)
+        _range("optim.step_end", self.step_end, 0.0, 1e3)
+        _range("optim.eps_g", self.eps_g, 0.0, 10.0)
+        _range("optim.eps_c", self.eps_c, 0.0, 1.0)
+
+
 def _range(name: str, value: int | float, lo: int | float, hi: int | float) -> None:
     if not lo <= value <= hi:
         raise FfcgsError(f"{name} must be in [{lo}, {hi}], got {value}")

@@ -105,6 +105,41 @@ def build_sdf(mesh: trimesh.Trimesh, cfg: SDFConfig = SDFConfig(), table_z: floa
 # ----------------------------------------------------------------------------------------------------------------
 
 
+class ObjectExtent(NamedTuple):
+    """What the grasp code needs to know of an object, read off its SDF (host-side NumPy).
+
+    Attributes:
+        centre: (3,) centroid of the inside voxels: the torque reference point of the grasp wrenches.
+        lo, hi: (3,) axis-aligned bounds of the inside voxels, widened by half a voxel.
+        radius: largest distance from `centre` to the object (inside voxels, plus half a voxel diagonal): the
+            characteristic length that makes torques comparable to forces.
+    """
+
+    centre: np.ndarray
+    lo: np.ndarray
+    hi: np.ndarray
+    radius: float
+
+
+def object_extent(sdf: GradientSDF) -> ObjectExtent:
+    """Centre, bounds and radius of the object from the SDF alone (so it also works for SDFs fused from depth).
+
+    Objects thinner than a voxel have no voxel centre inside; then the voxels within half a voxel of the surface
+    stand in for the inside.
+    """
+    grid = np.asarray(sdf.grid[..., 0])
+    h = float(sdf.voxel_size)
+    inside = grid <= 0
+    if not inside.any():
+        inside = grid <= 0.5 * h
+    if not inside.any():
+        raise FfcgsError("the SDF has no voxel inside or on the object; is it empty?")
+    p = np.asarray(sdf.origin) + h * np.argwhere(inside)
+    centre = p.mean(0)
+    radius = float(np.linalg.norm(p - centre, axis=1).max() + 0.5 * np.sqrt(3) * h)
+    return ObjectExtent(centre, p.min(0) - 0.5 * h, p.max(0) + 0.5 * h, radius)
+
+
 def _check_points(points) -> None:
     if points.ndim != 2 or points.shape[-1] != 3:
         raise FfcgsError(f"points must have shape (P, 3), got {points.shape}")
