@@ -16,6 +16,7 @@ import tyro
 
 from ffcgs_jax.config import RenderConfig, SDFConfig, check_all, from_dict
 from ffcgs_jax.errors import FfcgsError
+from ffcgs_jax.grasp import GraspConfig, summary_rows, synthesize
 
 
 @dataclasses.dataclass(frozen=True)
@@ -149,7 +150,76 @@ def pose_from_xyzrpy(v) -> np.ndarray:
     return T
 
 
+@dataclasses.dataclass(frozen=True)
+class GraspCmd:
+    """Synthesise force-closure grasps of an object: sample wrist poses, optimise the fingers, filter, evaluate.
+
+    Attributes:
+        object: built-in name (see `ffcgs objects`) or a mesh file (obj, stl, ply, off, glb), metres, z up.
+        out: grasp arrays (.npz; fields in README).
+        mcap: also write an MCAP log of the run (config, per-iteration energies, grasps).
+        png: also draw the best grasps to this PNG.
+        poses: optimise these wrist poses instead of sampling: .npy of shape (B, 4, 4), or .npz with
+            `wrist_pose` (e.g. a previous grasps.npz), object frame.
+        hand: built-in hand name or a hand-spec TOML.
+        grasp: synthesis settings (flags without prefix: --n, --sampler, --iters, --res, --d0, ...).
+    """
+
+    object: tyro.conf.Positional[str] = tyro.MISSING
+    out: str = "grasps.npz"
+    mcap: str | None = None
+    png: str | None = None
+    poses: str | None = None
+    hand: str = "svh"
+    grasp: GraspConfig = GraspConfig()
+
+
+def run_grasp(cmd: GraspCmd) -> None:
+    from ffcgs_jax import grasp_io, mesh_io
+    from ffcgs_jax import kinematics as K
+
+    hand = K.load_hand(cmd.hand)
+    mesh = mesh_io.load_mesh(cmd.object, scale=cmd.grasp.sdf.scale)
+    poses = None if cmd.poses is None else _read_poses(cmd.poses)
+    gs = synthesize(hand, mesh, cmd.grasp, Path(cmd.object).stem, poses=poses)
+    grasp_io.save_npz(gs, cmd.out)
+    rows = summary_rows(gs)
+    width = max(len(k) for k, _ in rows)
+    for k, v in rows:
+        print(f"{k:<{width}}  {v}")
+    print(f"wrote {cmd.out}")
+    if cmd.mcap:
+        grasp_io.write_mcap(gs, cmd.mcap, hand.spec.name, rows)
+        print(f"wrote {cmd.mcap}")
+    if cmd.png:
+        from ffcgs_jax import grasp_plot, render
+
+        image, _ = grasp_plot.grasps_image(hand, mesh, gs)
+        render.save_png(image, cmd.png)
+        print(f"wrote {cmd.png}")
+
+
+def _read_poses(path: str) -> np.ndarray:
+    p = Path(path)
+    if not p.is_file():
+        raise FfcgsError(f"pose file not found: {p}")
+    try:
+        data = np.load(p, allow_pickle=False)
+        if isinstance(data, np.lib.npyio.NpzFile):
+            if "wrist_pose" not in data.files:
+                raise FfcgsError(f"pose file {p} has no 'wrist_pose' array (has {', '.join(data.files)})")
+            data = data["wrist_pose"]
+    except FfcgsError:
+        raise
+    except Exception as e:  # noqa: BLE001 - any parse failure means an unreadable file
+        raise FfcgsError(f"pose file {p} is not a readable .npy/.npz: {type(e).__name__}: {e}") from None
+    from ffcgs_jax.kinematics import check_wrist_poses
+
+    return check_wrist_poses(data, f"wrist poses in {p}").reshape(-1, 4, 4)
+
+
 COMMANDS: dict[str, tuple[type, Callable]] = {
+    "grasp": (GraspCmd, run_grasp),
     "objects": (ObjectsCmd, run_objects),
     "sdf": (SdfCmd, run_sdf),
     "hand": (HandCmd, run_hand),

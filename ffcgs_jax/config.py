@@ -73,8 +73,12 @@ class EnergyConfig:
             gauge then stays within a few per cent of the Euclidean distance while the LP stays small).
         d0: E_c offset: 0 as in the paper's simulation, 0.005 for its real-robot setting (a slight squeeze).
         a_c, a_q: weights of E_c (metres) and E_q (paper: 5 and 0.5).
-        a_pen: weight of the whole-hand penetration penalty (mean squared sphere depth, metres^2); 0 = paper.
-        normal_grad: let gradients flow through the contact normals (the paper holds them fixed, dn/dc = 0).
+        a_pen: weight of the whole-hand collision penalty (`filters.penetration_penalty`, summed squared depths in
+            metres^2, so 1e4 makes a 1 cm deep link cost 1); the paper has none (0): it penalises fingertips only.
+        normal_grad: let gradients flow through the contact normals. The paper holds them fixed (dn/dc = 0), which
+            leaves E_g only the torques to work with: contacts bunched on one side then cannot spread out.
+
+    Defaults are this project's method; `configs/paper.toml` sets the paper's (a_pen 0, normal_grad false).
     """
 
     mu: float = 0.2
@@ -83,8 +87,8 @@ class EnergyConfig:
     d0: float = 0.0
     a_c: float = 5.0
     a_q: float = 0.5
-    a_pen: float = 0.0
-    normal_grad: bool = False
+    a_pen: float = 1e4
+    normal_grad: bool = True
 
     def check(self) -> None:
         _range("energy.mu", self.mu, 0.0, 2.0)
@@ -101,20 +105,43 @@ class OptimConfig:
 
     Attributes:
         iters: T, descent steps (paper: 50).
-        step, step_end: step size at the first and the last iteration (linear decay in between; rad per unit of
+        method: "gd", the paper's plain gradient descent q <- q - beta_t dE/dq, or "adam", the same with each
+            channel's step scaled by Adam's running gradient moments (see `optim.py` for why).
+        step, step_end: gd step size at the first and the last iteration (linear decay in between; rad per unit of
             gradient).
+        lr, lr_end: adam's learning rate at the first and the last iteration (linear decay; about rad per step).
+        wrist: also move the wrist (beyond the paper, which keeps H fixed): a twist (rotation vector, translation
+            in the hand frame) is optimised with q, so fingers that cannot reach the surface from the sampled
+            pose can get there. The filters then judge the refined pose.
+        wrist_rot_scale, wrist_shift_scale: the wrist twist's step relative to the channels' (rad per rad,
+            metres per rad): with adam and lr 0.05, about 0.015 rad and 2.5 mm per step.
+
+    Defaults are this project's method (adam, wrist refinement); `configs/paper.toml` sets Algorithm 1 as published
+    (gd, fixed wrist). Measured on both in bench/RESULTS.md.
         eps_g: a pose stops early once E_g < eps_g ...
         eps_c: ... and its fingertips are on the surface (E_c < eps_c metres). The paper stops on E_g alone; with
             normals taken from the SDF away from the surface, E_g can vanish before the fingers touch anything.
     """
 
     iters: int = 50
-    step: float = 1.0
-    step_end: float = 0.1
+    method: str = "adam"
+    step: float = 0.3
+    step_end: float = 0.03
+    lr: float = 0.05
+    lr_end: float = 0.005
     eps_g: float = 1e-3
     eps_c: float = 1e-3
+    wrist: bool = True
+    wrist_rot_scale: float = 0.3
+    wrist_shift_scale: float = 0.05
 
     def check(self) -> None:
+        _range("optim.wrist_rot_scale", self.wrist_rot_scale, 0.0, 100.0)
+        _range("optim.wrist_shift_scale", self.wrist_shift_scale, 0.0, 100.0)
+        if self.method not in ("gd", "adam"):
+            raise FfcgsError(f"optim.method must be gd or adam, got {self.method!r}")
+        _range("optim.lr", self.lr, 0.0, 10.0)
+        _range("optim.lr_end", self.lr_end, 0.0, 10.0)
         _range("optim.iters", self.iters, 1, 100000)
         _range("optim.step", self.step, 0.0, 1e3)
         _range("optim.step_end", self.step_end, 0.0, 1e3)

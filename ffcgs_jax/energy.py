@@ -7,6 +7,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Bool, Float
 
+from ffcgs_jax import filters as F
 from ffcgs_jax import quality, sdf
 from ffcgs_jax.config import EnergyConfig
 from ffcgs_jax.kinematics import Hand, contact_points
@@ -55,15 +56,6 @@ def joint_energy(hand: Hand, q: Float[Array, " Q"]) -> Float[Array, ""]:
     return jnp.mean(((q - hand.q_mean) / hand.q_range) ** 2)
 
 
-def penetration_penalty(hand: Hand, grid: sdf.GradientSDF, wrist_pose, q) -> Float[Array, ""]:
-    """Mean squared depth (m^2) of the hand's collision spheres inside the object."""
-    from ffcgs_jax.kinematics import collision_spheres
-
-    centres, radii = collision_spheres(hand, wrist_pose, q)
-    depth = jax.nn.relu(radii - sdf.distance(grid, centres))
-    return jnp.mean(depth**2)
-
-
 def energy(
     hand: Hand, target: Target, wrist_pose: Float[Array, "4 4"], q: Float[Array, " Q"], cfg: EnergyConfig
 ) -> tuple[Float[Array, ""], Terms]:
@@ -76,7 +68,7 @@ def energy(
     E_g, ok = quality.q_distance(c, n, target.centre, target.radius, cfg.mu, cfg.cone_edges, cfg.basis_size)
     E_c = contact_energy(d, cfg.d0)
     E_q = joint_energy(hand, q)
-    P = penetration_penalty(hand, target.sdf, wrist_pose, q) if cfg.a_pen > 0 else jnp.zeros_like(E_c)
+    P = F.penetration_penalty(hand, target.sdf, wrist_pose, q) if cfg.a_pen > 0 else jnp.zeros_like(E_c)
     E = E_g + cfg.a_c * E_c + cfg.a_q * E_q + cfg.a_pen * P
     return E, Terms(E, E_g, E_c, E_q, P, ok, c)
 

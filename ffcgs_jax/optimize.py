@@ -16,6 +16,7 @@ from jaxtyping import Array, Bool, Float, Int
 from ffcgs_jax.config import EnergyConfig, OptimConfig
 from ffcgs_jax.energy import Target, Terms, energy
 from ffcgs_jax.kinematics import Hand
+from ffcgs_jax.optim import adam_init, adam_update
 
 
 class Trace(NamedTuple):
@@ -29,6 +30,7 @@ class Trace(NamedTuple):
 
 class OptResult(NamedTuple):
     q: Float[Array, "B Q"]
+    wrist_pose: Float[Array, "B 4 4"]  # the input poses, or the refined ones with optim.wrist
     final: Terms  # each field with a leading B
     iters: Int[Array, " B"]  # descent steps taken before the early stop
     converged: Bool[Array, " B"]  # stopped early (E_g < eps_g and E_c < eps_c)
@@ -36,33 +38,67 @@ class OptResult(NamedTuple):
     trace: Trace
 
 
+def twist_pose(H: Float[Array, "4 4"], xi: Float[Array, " 6"]) -> Float[Array, "4 4"]:
+    """H @ [R(xi[:3]) | xi[3:]]: a rotation vector and a translation applied in the hand's root frame."""
+    w = xi[:3]
+    th2 = jnp.sum(w**2)
+    th = jnp.sqrt(th2 + 1e-30)
+    K = jnp.array([[0.0, -w[2], w[1]], [w[2], 0.0, -w[0]], [-w[1], w[0], 0.0]], dtype=xi.dtype)
+    small = th2 < 1e-12  # Taylor terms near 0 keep the derivative exact there
+    a = jnp.where(small, 1.0 - th2 / 6, jnp.sin(th) / th)
+    b = jnp.where(small, 0.5 - th2 / 24, (1 - jnp.cos(th)) / jnp.where(small, 1.0, th2))
+    R = jnp.eye(3, dtype=xi.dtype) + a * K + b * (K @ K)
+    D = jnp.eye(4, dtype=xi.dtype).at[:3, :3].set(R).at[:3, 3].set(xi[3:])
+    return H @ D
+
+
 def _optimize(hand: Hand, target: Target, poses, energy_cfg: EnergyConfig, optim_cfg: OptimConfig) -> OptResult:
     B = poses.shape[0]
     T = optim_cfg.iters
-    value_and_grad = jax.vmap(
-        jax.value_and_grad(lambda H, q: energy(hand, target, H, q, energy_cfg), argnums=1, has_aux=True)
-    )
+    wrist = optim_cfg.wrist
+
+    def total(H, x):
+        q, xi = x
+        return energy(hand, target, twist_pose(H, xi) if wrist else H, q, energy_cfg)
+
+    value_and_grad = jax.vmap(jax.value_and_grad(total, argnums=1, has_aux=True))
     q0 = jnp.broadcast_to(jnp.clip(jnp.zeros_like(hand.lower), hand.lower, hand.upper), (B, hand.n_channels))
+    xi0 = jnp.zeros((B, 6), poses.dtype)
+    # per-variable scale of the step: channels in rad, wrist rotation in rad, wrist translation in metres
+    scale = (jnp.ones_like(hand.lower),
+             jnp.concatenate([jnp.full(3, optim_cfg.wrist_rot_scale), jnp.full(3, optim_cfg.wrist_shift_scale)])
+             .astype(poses.dtype))
+
+    adam = optim_cfg.method == "adam"
+    first, last = (optim_cfg.lr, optim_cfg.lr_end) if adam else (optim_cfg.step, optim_cfg.step_end)
 
     def step(carry, t):
-        q, active, iters, lp_ok = carry
-        (_, terms), g = value_and_grad(poses, q)
+        x, active, iters, lp_ok, state = carry
+        (_, terms), g = value_and_grad(poses, x)
         done = (terms.E_g < optim_cfg.eps_g) & (terms.E_c < optim_cfg.eps_c)
         active = active & ~done
-        beta = optim_cfg.step + (optim_cfg.step_end - optim_cfg.step) * t / max(T - 1, 1)
+        beta = first + (last - first) * t / max(T - 1, 1)
         move = active & terms.lp_ok
-        g = jnp.where(jnp.isfinite(g), g, 0.0)
-        q_new = jnp.where(move[:, None], jnp.clip(q - beta * g, hand.lower, hand.upper), q)
+        g = jax.tree.map(lambda a: jnp.where(jnp.isfinite(a), a, 0.0), g)
+        if adam:
+            delta, state = adam_update(g, state, beta)
+        else:
+            delta = jax.tree.map(lambda a: -beta * a, g)
+        delta = jax.tree.map(lambda d, s_: d * s_[None, :], delta, scale)
+        q_new = jnp.where(move[:, None], jnp.clip(x[0] + delta[0], hand.lower, hand.upper), x[0])
+        xi_new = jnp.where(move[:, None] & wrist, x[1] + delta[1], x[1])
         record = (terms.E, terms.E_g, terms.E_c, terms.contacts)
-        return (q_new, active, iters + active, lp_ok & (terms.lp_ok | ~active)), record
+        return ((q_new, xi_new), active, iters + active, lp_ok & (terms.lp_ok | ~active), state), record
 
-    init = (q0, jnp.ones(B, bool), jnp.zeros(B, jnp.int32), jnp.ones(B, bool))
-    (q, active, iters, lp_ok), hist = jax.lax.scan(step, init, jnp.arange(T))
+    x0 = (q0, xi0)
+    init = (x0, jnp.ones(B, bool), jnp.zeros(B, jnp.int32), jnp.ones(B, bool), adam_init(x0))
+    ((q, xi), active, iters, lp_ok, _), hist = jax.lax.scan(step, init, jnp.arange(T))
+    poses = jax.vmap(twist_pose)(poses, xi) if wrist else poses
     _, final = jax.vmap(lambda H, qq: energy(hand, target, H, qq, energy_cfg))(poses, q)
     trace = Trace(*(jnp.concatenate([h, f[None]], 0) for h, f in
                     zip(hist, (final.E, final.E_g, final.E_c, final.contacts))))
     converged = (final.E_g < optim_cfg.eps_g) & (final.E_c < optim_cfg.eps_c)
-    return OptResult(q, final, iters, converged, lp_ok & final.lp_ok, trace)
+    return OptResult(q, poses, final, iters, converged, lp_ok & final.lp_ok, trace)
 
 
 optimize = jax.jit(_optimize, static_argnames=("energy_cfg", "optim_cfg"))

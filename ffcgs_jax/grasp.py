@@ -1,0 +1,218 @@
+"""The grasp pipeline: sample wrist poses, optimise the fingers (Algorithm 1), filter, evaluate.
+
+`synthesize` is what `ffcgs grasp` runs. The device part (sampling, descent, filters) is one jit-compiled
+function, compiled ahead of time so its compile time is measured apart from the synthesis time; the evaluation
+(Ferrari-Canny epsilon from the mesh itself) runs on the host afterwards with NumPy/SciPy.
+"""
+
+import dataclasses
+import time
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+import mujoco
+import numpy as np
+import trimesh
+
+from ffcgs_jax import filters as F
+from ffcgs_jax import metrics, samplers
+from ffcgs_jax import sdf as sdf_mod
+from ffcgs_jax.config import EnergyConfig, OptimConfig, SDFConfig
+from ffcgs_jax.energy import Target, make_target
+from ffcgs_jax.errors import FfcgsError
+from ffcgs_jax import kinematics as K
+from ffcgs_jax.kinematics import Hand
+from ffcgs_jax.optimize import OptResult, _optimize
+
+
+@dataclasses.dataclass(frozen=True)
+class GraspConfig:
+    """Everything `synthesize` needs besides the hand and the object.
+
+    Attributes:
+        n: wrist poses sampled and optimised as one batch.
+        sampler: "geometric" or "random" (Table I's baselines); the learned sampler plugs in later.
+        seed: PRNG seed of the sampler.
+        max_penetration: a grasp whose hand collision spheres reach deeper than this into the object (metres) is
+            not valid. 1 cm, as the physics test's initial-penetration rule; the paper does not check this.
+    """
+
+    n: int = 32
+    sampler: str = "geometric"
+    seed: int = 0
+    max_penetration: float = 0.01
+    sdf: SDFConfig = SDFConfig()
+    energy: EnergyConfig = EnergyConfig()
+    optim: OptimConfig = OptimConfig()
+    filters: F.FilterConfig = F.FilterConfig()
+    sampling: samplers.SamplerConfig = samplers.SamplerConfig()
+
+    def check(self) -> None:
+        if not 1 <= self.n <= 1_000_000:
+            raise FfcgsError(f"n must be >= 1 (and at most 1e6), got {self.n}")
+        if self.sampler not in samplers.names():
+            raise FfcgsError(f"unknown sampler {self.sampler!r}; samplers: {', '.join(samplers.names())}")
+        if not 0 <= self.max_penetration <= 1:
+            raise FfcgsError(f"max_penetration must be in [0, 1] m, got {self.max_penetration}")
+
+
+class DeviceOut(NamedTuple):
+    poses: jax.Array
+    opt: OptResult
+    pose_collides: jax.Array
+    palm_up: jax.Array
+    tips_below_table: jax.Array
+    penetration: jax.Array
+    table_penetration: jax.Array
+
+
+class DeviceConfig(NamedTuple):
+    """The part of GraspConfig the compiled function depends on (the seed and the SDF settings are not)."""
+
+    sampler: str
+    sampling: samplers.SamplerConfig
+    energy: EnergyConfig
+    optim: OptimConfig
+    filters: F.FilterConfig
+
+
+def _device_part(hand: Hand, target: Target, key: jax.Array, given: jax.Array | None, cfg: DeviceConfig,
+                 n: int) -> DeviceOut:
+    if given is None:
+        palm_root = K.forward_kinematics(hand, jnp.eye(4, dtype=hand.lower.dtype), jnp.zeros_like(hand.lower)).palm_pos
+        poses = samplers.CORES[cfg.sampler](hand, palm_root, key, target.sdf, n, cfg.sampling, cfg.filters)
+    else:
+        poses = given
+    opt = _optimize(hand, target, poses, cfg.energy, cfg.optim)
+    poses = opt.wrist_pose
+    tips = jnp.moveaxis(opt.trace.tips, 1, 0)  # (B, T+1, C, 3)
+    pen = jax.vmap(lambda H, q: F.hand_penetration(hand, target.sdf, H, q)[0])(poses, opt.q)
+    tpen = jax.vmap(lambda H, q: F.hand_table_penetration(hand, target.sdf, H, q)[0])(poses, opt.q)
+    return DeviceOut(
+        poses=poses,
+        opt=opt,
+        pose_collides=F.pose_collides_batch(hand, target.sdf, poses, cfg.filters),
+        palm_up=F.palm_up_batch(hand, poses, cfg.filters),
+        tips_below_table=jax.vmap(lambda t: F.tips_below_table(target.sdf, t, cfg.filters.tip_table_margin))(tips),
+        penetration=pen,
+        table_penetration=tpen,
+    )
+
+
+_device_jit = jax.jit(_device_part, static_argnames=("cfg", "n"))
+_COMPILED: dict = {}
+
+
+def _compiled(hand: Hand, target: Target, key: jax.Array, given, dcfg: DeviceConfig, n: int):
+    """Ahead-of-time compiled device part, cached like jit's own cache (AOT compiles bypass that cache), so that
+    compile time can be reported apart and a second object of the same grid size reuses the executable."""
+    shapes = jax.tree.map(lambda x: (x.shape, x.dtype), (target, key, given))
+    k = (hand.spec, dcfg, n, str(shapes), jax.default_backend())
+    if k not in _COMPILED:
+        _COMPILED[k] = _device_jit.lower(hand, target, key, given, cfg=dcfg, n=n).compile()
+    return _COMPILED[k]
+
+
+@dataclasses.dataclass
+class GraspSet:
+    """Grasps of one object, host arrays; field meanings as in README's `grasps.npz` table."""
+
+    arrays: dict[str, np.ndarray]
+    trace: dict[str, np.ndarray]  # per-iteration E, E_g, E_c: (T+1, G)
+    config: GraspConfig
+    object_name: str
+
+    def __getitem__(self, key: str) -> np.ndarray:
+        return self.arrays[key]
+
+    def order(self) -> np.ndarray:
+        """Grasp indices, valid ones first, each group by increasing E."""
+        return np.lexsort((self["E"], ~self["valid"]))
+
+
+def synthesize(hand: Hand, mesh: trimesh.Trimesh, cfg: GraspConfig = GraspConfig(), object_name: str = "object",
+               grid: sdf_mod.GradientSDF | None = None, poses: np.ndarray | None = None) -> GraspSet:
+    """Sample `cfg.n` wrist poses on the object (or take `poses`, (B, 4, 4), object frame), optimise the fingers,
+    filter and evaluate the grasps."""
+    cfg.check()
+    if grid is None:
+        grid = sdf_mod.build_sdf(mesh, cfg.sdf)
+    target = make_target(grid)
+    key = jax.random.PRNGKey(cfg.seed)
+    given = None
+    if poses is not None:
+        from ffcgs_jax.kinematics import check_wrist_poses
+
+        given = jnp.asarray(check_wrist_poses(poses, "wrist poses").reshape(-1, 4, 4), target.sdf.grid.dtype)
+    n = cfg.n if given is None else given.shape[0]
+    dcfg = DeviceConfig(cfg.sampler if given is None else "given", cfg.sampling, cfg.energy, cfg.optim, cfg.filters)
+    t0 = time.perf_counter()
+    compiled = _compiled(hand, target, key, given, dcfg, n)
+    compile_s = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    out = jax.block_until_ready(compiled(hand, target, key, given))
+    synthesis_s = time.perf_counter() - t0
+    return _finish(hand, mesh, target, cfg, out, synthesis_s, compile_s, object_name)
+
+
+def _finish(hand, mesh, target, cfg, out: DeviceOut, synthesis_s, compile_s, object_name) -> GraspSet:
+    opt = out.opt
+    q = np.asarray(opt.q, np.float64)
+    contacts = np.asarray(opt.final.contacts, np.float64)
+    penetration = np.asarray(out.penetration, np.float64)
+    ev = metrics.evaluate(mesh, contacts, q, np.asarray(hand.lower), np.asarray(hand.upper),
+                          metrics.MetricsConfig(mu=cfg.energy.mu, cone_edges=cfg.energy.cone_edges, d0=cfg.energy.d0,
+                                                a_c=cfg.energy.a_c, a_q=cfg.energy.a_q,
+                                                basis_size=cfg.energy.basis_size),
+                          centre=np.asarray(target.centre, np.float64), radius=float(target.radius),
+                          penetration=penetration)
+    valid = (~np.asarray(out.pose_collides) & ~np.asarray(out.palm_up) & ~np.asarray(out.tips_below_table)
+             & np.asarray(opt.lp_ok) & (penetration <= cfg.max_penetration))
+    m = hand.spec.mj_model()
+    joint_names = np.array([mujoco.mj_id2name(m, mujoco.mjtObj.mjOBJ_JOINT, j) for j in range(m.njnt)])
+    arrays = {
+        "wrist_pose": np.asarray(out.poses, np.float64),
+        "q": q,
+        "channel_names": np.array(hand.spec.channel_names),
+        "joint_pos": q @ np.asarray(hand.coupling, np.float64).T,
+        "joint_names": joint_names,
+        "contacts": contacts,
+        "E": np.asarray(opt.final.E, np.float64),
+        "E_g": np.asarray(opt.final.E_g, np.float64),
+        "E_c": np.asarray(opt.final.E_c, np.float64),
+        "E_q": np.asarray(opt.final.E_q, np.float64),
+        "epsilon": np.asarray(ev["epsilon"], np.float64),
+        "force_closure": np.asarray(ev["force_closure"]),
+        "E_g_mesh": np.asarray(ev["E_g"], np.float64),
+        "E_c_mesh": np.asarray(ev["E_c"], np.float64),
+        "penetration": penetration,
+        "table_penetration": np.asarray(out.table_penetration, np.float64),
+        "pose_collides": np.asarray(out.pose_collides),
+        "palm_up": np.asarray(out.palm_up),
+        "tips_below_table": np.asarray(out.tips_below_table),
+        "lp_ok": np.asarray(opt.lp_ok),
+        "iters": np.asarray(opt.iters),
+        "valid": valid,
+        "synthesis_s": np.float64(synthesis_s),
+        "compile_s": np.float64(compile_s),
+    }
+    trace = {k: np.asarray(getattr(opt.trace, k), np.float64) for k in ("E", "E_g", "E_c")}
+    return GraspSet(arrays, trace, cfg, object_name)
+
+
+def summary_rows(gs: GraspSet) -> list[tuple[str, str]]:
+    """The short table `ffcgs grasp` prints: counts and medians over the valid grasps."""
+    v = gs["valid"]
+    med = lambda k, s=1.0: f"{np.median(gs[k][v]) * s:.4g}" if v.any() else "-"  # noqa: E731
+    return [
+        ("grasps (valid / sampled)", f"{int(v.sum())} / {len(v)}"),
+        ("valid with epsilon > 0", f"{int((gs['epsilon'][v] > 0).sum())}"),
+        ("median E", med("E")),
+        ("median E_g", med("E_g")),
+        ("median E_c (cm)", med("E_c", 100)),
+        ("median epsilon", med("epsilon")),
+        ("median penetration (mm)", med("penetration", 1000)),
+        ("synthesis time (s)", f"{float(gs['synthesis_s']):.3f}"),
+        ("compile time (s)", f"{float(gs['compile_s']):.2f}"),
+    ]

@@ -1,0 +1,333 @@
+"""Wrist pose samplers: the baselines of the paper's Table I behind one interface.
+
+A sampler is a function `sample(key, sdf, n) -> (n, 4, 4)` wrist poses (world <- hand root), built by
+`make_sampler(name, hand, cfg)`. Each draws from `jax.random` only, so a key fixes its output, and runs as one
+jit-compiled function per n (n is static); calling `sample` inside an outer `jax.jit` works too (with n static).
+The learned sampler plugs into the same interface.
+
+- "random": palm centre uniform in a box around the object, rotation uniform on SO(3); no filtering (section
+  V.A.1: the optimiser's filters flag the bad ones).
+- "geometric": the palm faces the surface at a fixed standoff, its normal along the SDF gradient at a surface
+  point; candidates that fail the pose filters of Algorithm 1 are dropped (see `geometric_candidates`).
+"""
+
+import dataclasses
+import math
+from collections.abc import Callable
+from functools import partial
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+import mujoco
+import numpy as np
+
+from ffcgs_jax import filters as F
+from ffcgs_jax import sdf as S
+from ffcgs_jax.errors import FfcgsError
+from ffcgs_jax.kinematics import Hand
+from ffcgs_jax.sdf import GradientSDF
+from ffcgs_jax.types import Array, Bool, Float
+
+Sampler = Callable[[jax.Array, GradientSDF, int], jax.Array]
+
+
+@dataclasses.dataclass(frozen=True)
+class SamplerConfig:
+    """Options of the baseline samplers.
+
+    Attributes:
+        translation_scale: "random": the palm centre is uniform in the object's axis-aligned bounding box scaled by
+            this factor about its centre (paper, V.A.1: "two times the size of the object's bounding box").
+        standoff: "geometric": metres from the surface point to the palm centre, along the outward normal.
+            0.05 m, the smallest round standoff at which the open hand (q = 0) clears a flat face: its farthest
+            collision-box corner along the palm normal (the thumb's proximal link) lies 4.5 cm in front of the
+            palm centre, and on the built-in box the fraction of candidates passing the box-corner filter rises
+            from 26 % at 4-4.5 cm to 34 % at 5 cm and stays there. A larger standoff only moves the fingertips
+            away: along the palm normal they reach at most 4.2 cm (fingers, near mid-closure q = (lower +
+            upper) / 2) and 4.6 cm (thumb, at 30 % closure), and the fingertips' mean distance to the built-in
+            objects at mid-closure grows by about 0.7 cm per cm of standoff.
+        oversample: "geometric": candidates drawn per requested pose before the collision and palm-up filters.
+            About 6 % pass on the built-in mug (its cavity and the table reject most) and 34 % on the box, so
+            32 leaves about twice the poses needed on the mug; raise it for objects with little free surface.
+    """
+
+    translation_scale: float = 2.0
+    standoff: float = 0.05
+    oversample: int = 32
+
+    def check(self) -> None:
+        for name, lo, hi in (("translation_scale", 0.0, 100.0), ("standoff", 0.0, 1.0)):
+            v = getattr(self, name)
+            if not (isinstance(v, (int, float)) and math.isfinite(v) and lo < v <= hi):
+                raise FfcgsError(f"sampler.{name} must be a number in ({lo}, {hi}], got {v!r}")
+        if not (isinstance(self.oversample, int) and 1 <= self.oversample <= 4096):
+            raise FfcgsError(f"sampler.oversample must be an integer in [1, 4096], got {self.oversample!r}")
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# Rotations and frames (single item)
+# ----------------------------------------------------------------------------------------------------------------
+
+
+def quat_to_matrix(quat: Float[Array, " 4"]) -> Float[Array, "3 3"]:
+    """Rotation matrix of a quaternion (w, x, y, z); it need not be normalised (it is, here)."""
+    w, x, y, z = quat / jnp.linalg.norm(quat)
+    return jnp.array([
+        [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+        [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+        [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
+    ])
+
+
+def _frame(a: Float[Array, " 3"]) -> Float[Array, "3 3"]:
+    """A right-handed orthonormal basis (u, v, a) as columns, for a unit vector a."""
+    # The helper axis only needs to be far from parallel to a; which one is chosen does not matter because the
+    # callers add a uniform random spin about a.
+    helper = jnp.where(jnp.abs(a[0]) < 0.9, jnp.array([1.0, 0.0, 0.0]), jnp.array([0.0, 1.0, 0.0]))
+    u = helper - (helper @ a) * a
+    u = u / jnp.linalg.norm(u)
+    return jnp.stack([u, jnp.cross(a, u), a], axis=1)
+
+
+def _spin_z(theta: Float[Array, ""]) -> Float[Array, "3 3"]:
+    c, s = jnp.cos(theta), jnp.sin(theta)
+    return jnp.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+
+
+def _pose(R: Float[Array, "3 3"], t: Float[Array, " 3"]) -> Float[Array, "4 4"]:
+    return jnp.eye(4, dtype=R.dtype).at[:3, :3].set(R).at[:3, 3].set(t)
+
+
+def palm_facing_pose(
+    hand: Hand, palm_root: Float[Array, " 3"], palm_world: Float[Array, " 3"], normal: Float[Array, " 3"],
+    theta: Float[Array, ""],
+) -> Float[Array, "4 4"]:
+    """Wrist pose putting the palm centre at palm_world with the palm normal along -normal, spun by theta about it.
+
+    Args:
+        hand: gives the palm normal in the root frame.
+        palm_root: (3,) palm centre in the root frame.
+        palm_world: (3,) where the palm centre goes, metres.
+        normal: (3,) unit outward surface normal the palm faces (the palm normal becomes -normal).
+        theta: () spin about the normal, rad.
+    Returns:
+        (4, 4) world <- hand root.
+    """
+    R = _frame(-normal) @ _spin_z(theta) @ _frame(hand.palm_normal).T  # maps palm_normal to -normal
+    return _pose(R, palm_world - R @ palm_root)
+
+
+def palm_centre_root(hand: Hand) -> np.ndarray:
+    """The palm centre (the palm site at q = 0) in the hand's root frame, host NumPy (3,).
+
+    Computed with MuJoCo C on the host: one call at sampler construction, where tracing MJX would cost seconds.
+    """
+    m = hand.spec.mj_model()
+    d = mujoco.MjData(m)
+    d.qpos[:] = 0.0  # q = 0, as the FK's qpos = coupling @ q
+    mujoco.mj_kinematics(m, d)
+    root_inv = np.asarray(hand.root_inv, np.float64)
+    return root_inv[:3, :3] @ d.site_xpos[hand.palm_site_id] + root_inv[:3, 3]
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# Grid helpers (pure JAX, so the samplers trace with the SDF as an argument)
+# ----------------------------------------------------------------------------------------------------------------
+
+
+def _voxel_centres(sdf: GradientSDF) -> Float[Array, "P 3"]:
+    res = sdf.grid.shape[0]
+    ijk = jnp.stack(jnp.meshgrid(*(jnp.arange(res),) * 3, indexing="ij"), -1).reshape(-1, 3)
+    return sdf.origin[None, :] + sdf.voxel_size * ijk.astype(sdf.origin.dtype)
+
+
+def bounding_box(sdf: GradientSDF) -> tuple[Float[Array, " 3"], Float[Array, " 3"]]:
+    """The lo, hi of `sdf.object_extent`, in JAX: bounds of the inside voxels widened by half a voxel.
+
+    Like object_extent, objects thinner than a voxel fall back to the voxels within half a voxel of the surface.
+    An SDF with neither gives an infinite box (the host wrapper refuses it before this runs).
+    """
+    d = sdf.grid[..., 0].reshape(-1)
+    h = sdf.voxel_size
+    inside = jnp.where(jnp.any(d <= 0), d <= 0, d <= 0.5 * h)
+    p = _voxel_centres(sdf)
+    lo = jnp.min(jnp.where(inside[:, None], p, jnp.inf), axis=0) - 0.5 * h
+    hi = jnp.max(jnp.where(inside[:, None], p, -jnp.inf), axis=0) + 0.5 * h
+    return lo, hi
+
+
+def surface_points(
+    key: jax.Array, sdf: GradientSDF, m: int, min_normal_z: float = -1.0
+) -> tuple[Float[Array, "M 3"], Float[Array, "M 3"]]:
+    """m points drawn uniformly (with replacement) from the voxels within one voxel of the surface, projected.
+
+    Each chosen voxel centre v moves to v - d(v) g(v), its first-order closest surface point; the normal is the
+    SDF gradient queried there. Voxels whose stored gradient has z below min_normal_z are left out (the geometric
+    sampler uses this to skip normals whose facing palm would point up), unless that leaves none.
+
+    Args:
+        key: PRNG key.
+        sdf: the object grid.
+        m: number of points (static).
+        min_normal_z: lowest z component of the normal at the voxels drawn from (-1: all of them).
+    Returns:
+        points (m, 3) near the surface and outward unit normals (m, 3).
+    """
+    flat = sdf.grid.reshape(-1, 4)
+    near = jnp.abs(flat[:, 0]) < sdf.voxel_size
+    wanted = near & (flat[:, 3] >= min_normal_z)
+    # Without such voxels p would be 0 / 0: fall back to all near-surface voxels, then to all voxels (the host
+    # wrapper refuses grids without a surface, so the last only keeps traced calls finite).
+    w = jnp.where(jnp.any(wanted), wanted, jnp.where(jnp.any(near), near, True)).astype(flat.dtype)
+    idx = jax.random.choice(key, flat.shape[0], (m,), replace=True, p=w / jnp.sum(w))
+    v = _voxel_centres(sdf)[idx]
+    p = v - flat[idx, :1] * flat[idx, 1:]
+    _, n = S.query(sdf, p)
+    return p, n
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# The samplers' cores (one item of math each, batched with vmap; jitted once per sampler in make_sampler)
+# ----------------------------------------------------------------------------------------------------------------
+
+
+def sample_random(
+    hand: Hand, palm_root: Float[Array, " 3"], key: jax.Array, sdf: GradientSDF, n: int, cfg: SamplerConfig,
+    filters: F.FilterConfig = F.FilterConfig(),
+) -> Float[Array, "B 4 4"]:
+    """Table I's random baseline: palm centre uniform in the scaled bounding box, rotation uniform on SO(3).
+
+    A normalised 4-D Gaussian is uniform on the unit quaternions, hence its rotation uniform on SO(3).
+    """
+    del hand, filters  # same signature as the other samplers; random poses are not filtered (the paper's baseline)
+    k_t, k_q = jax.random.split(key)
+    lo, hi = bounding_box(sdf)
+    centre, half = (lo + hi) / 2, cfg.translation_scale * (hi - lo) / 2
+    u = jax.random.uniform(k_t, (n, 3), dtype=lo.dtype)
+    palm = centre[None, :] + (2 * u - 1) * half[None, :]
+    R = jax.vmap(quat_to_matrix)(jax.random.normal(k_q, (n, 4), dtype=lo.dtype))
+    t = palm - jnp.einsum("bij,j->bi", R, palm_root)
+    return jax.vmap(_pose)(R, t)
+
+
+class Candidates(NamedTuple):
+    """Geometric candidates before selection.
+
+    Attributes:
+        poses: (M, 4, 4) wrist poses, world <- hand root.
+        surface: (M, 3) surface points they face; normal: (M, 3) outward normals there.
+        valid: (M,) passed both pose filters.
+        violation: (M,) how far each misses them: metres a box corner lies inside object or table (beyond the
+            clearance) plus how far the palm normal's z exceeds palm_up_max; 0 for valid ones.
+    """
+
+    poses: Float[Array, "M 4 4"]
+    surface: Float[Array, "M 3"]
+    normal: Float[Array, "M 3"]
+    valid: Bool[Array, " M"]
+    violation: Float[Array, " M"]
+
+
+def geometric_candidates(
+    hand: Hand, palm_root: Float[Array, " 3"], key: jax.Array, sdf: GradientSDF, m: int, cfg: SamplerConfig,
+    filters: F.FilterConfig = F.FilterConfig(),
+) -> Candidates:
+    """m unfiltered geometric poses: palm centre at p + standoff n facing the surface, random spin about n.
+
+    Args:
+        hand: from `kinematics.load_hand`.
+        palm_root: (3,) palm centre in the root frame (`palm_centre_root`).
+        key: PRNG key.
+        sdf: the object grid (object and table).
+        m: number of candidates (static).
+        cfg: standoff.
+        filters: thresholds of the pose filters (default: the paper's).
+    Returns:
+        Candidates, with the filter verdicts.
+    """
+    k_p, k_s = jax.random.split(key)
+    f = filters
+    # The palm faces -n, so the palm-up filter rejects exactly the normals with n_z < -palm_up_max: draw only
+    # from surface voxels that pass it (same poses as drawing all and rejecting, at half the cost on typical
+    # objects). The filter still runs below on the normal at the projected point, which may differ slightly.
+    p, n = surface_points(k_p, sdf, m, -f.palm_up_max)
+    theta = jax.random.uniform(k_s, (m,), dtype=p.dtype, maxval=2 * jnp.pi)
+    poses = jax.vmap(palm_facing_pose, (None, None, 0, 0, 0))(hand, palm_root, p + cfg.standoff * n, n, theta)
+    clearance = F.pose_clearance_batch(hand, sdf, poses)
+    up = jnp.einsum("bij,j->bi", poses[:, :3, :3], hand.palm_normal)[:, 2]
+    valid = ~F.pose_collides_batch(hand, sdf, poses, f) & ~F.palm_up_batch(hand, poses, f)
+    violation = jax.nn.relu(f.clearance - clearance) + jax.nn.relu(up - f.palm_up_max)
+    return Candidates(poses, p, n, valid, jnp.where(valid, 0.0, violation))
+
+
+def sample_geometric(
+    hand: Hand, palm_root: Float[Array, " 3"], key: jax.Array, sdf: GradientSDF, n: int, cfg: SamplerConfig,
+    filters: F.FilterConfig = F.FilterConfig(),
+) -> Float[Array, "B 4 4"]:
+    """The first n valid of oversample * n geometric candidates, topped up with the least violating invalid ones.
+
+    With fewer than n valid candidates the result still has n poses (fixed shapes under jit): the rest are the
+    invalid candidates that miss the filters by the least (see `Candidates.violation`), so callers that need
+    only valid poses re-check them with `filters`.
+    """
+    c = geometric_candidates(hand, palm_root, key, sdf, cfg.oversample * n, cfg, filters)
+    # Valid ones sort first in draw order (stable sort on a constant key), then the invalid ones by violation.
+    order = jnp.argsort(jnp.where(c.valid, -1.0, c.violation), stable=True)
+    return c.poses[order[:n]]
+
+
+# The cores by name, (hand, palm_root, key, sdf, n, cfg, filters) -> (n, 4, 4): for pipelines that jit around them (no
+# host checks; palm_root from `palm_centre_root`). `make_sampler` wraps one with the checks and its own jit.
+CORES = {"random": sample_random, "geometric": sample_geometric}
+
+
+def names() -> list[str]:
+    """Names `make_sampler` accepts."""
+    return sorted(CORES)
+
+
+def make_sampler(
+    name: str, hand: Hand, cfg: SamplerConfig = SamplerConfig(), filters: F.FilterConfig = F.FilterConfig()
+) -> Sampler:
+    """Build a sampler `sample(key, sdf, n) -> (n, 4, 4)` wrist poses, world <- hand root.
+
+    The returned function checks n and the grid on the host, then calls the sampler's core, jit-compiled once
+    here (one compilation per n); it is deterministic for a fixed key.
+
+    Args:
+        name: "random" or "geometric" (see the module docstring).
+        hand: from `kinematics.load_hand`.
+        cfg: sampler options, checked here.
+        filters: thresholds of the pose filters the geometric sampler applies (default: the paper's).
+    Returns:
+        The sampler function.
+    """
+    if name not in CORES:
+        raise FfcgsError(f"unknown sampler {name!r}; valid names: {', '.join(names())}")
+    cfg.check()
+    filters.check()
+    palm_root = jnp.asarray(palm_centre_root(hand))
+    core = jax.jit(partial(CORES[name], cfg=cfg, filters=filters), static_argnames="n")
+
+    def sample(key: jax.Array, sdf: GradientSDF, n: int) -> Float[Array, "B 4 4"]:
+        if isinstance(n, bool) or not isinstance(n, (int, np.integer)) or n < 1:
+            raise FfcgsError(f"n (number of wrist poses) must be an integer >= 1, got {n!r}")
+        _check_sdf(sdf)
+        return core(hand, palm_root, key, sdf, n=int(n))
+
+    sample.__name__ = sample.__qualname__ = f"sample_{name}"
+    return sample
+
+
+def _check_sdf(sdf: GradientSDF) -> None:
+    """Host checks of the grid: shape always; a surface to sample when the values are concrete."""
+    g = sdf.grid
+    if g.ndim != 4 or g.shape[-1] != 4 or not g.shape[0] == g.shape[1] == g.shape[2] >= 2:
+        raise FfcgsError(f"sdf.grid must have shape (R, R, R, 4) with R >= 2, got {tuple(g.shape)}")
+    if isinstance(g, jax.core.Tracer):
+        return  # under an outer jit the values are unknown; the cores stay finite on empty grids
+    d = np.asarray(g[..., 0])
+    h = float(sdf.voxel_size)
+    if not np.any(np.abs(d) < h) or not np.any(d <= 0.5 * h):
+        raise FfcgsError("the SDF has no voxel on or inside the object surface; is it empty?")
