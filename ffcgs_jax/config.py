@@ -104,7 +104,9 @@ class OptimConfig:
     """Algorithm 1: gradient descent on the channels q from q = 0, with a linearly decaying step.
 
     Attributes:
-        iters: T, descent steps (paper: 50).
+        iters: T, descent steps. The paper uses 50; with the wrist free there are 6 more variables and the hand
+            travels further, and at 50 steps most fingertips stop 1-2 cm short of the surface, so the default is
+            100 (`configs/paper.toml` keeps 50).
         method: "gd", the paper's plain gradient descent q <- q - beta_t dE/dq, or "adam", the same with each
             channel's step scaled by Adam's running gradient moments (see `optim.py` for why).
         step, step_end: gd step size at the first and the last iteration (linear decay in between; rad per unit of
@@ -123,7 +125,7 @@ class OptimConfig:
             normals taken from the SDF away from the surface, E_g can vanish before the fingers touch anything.
     """
 
-    iters: int = 50
+    iters: int = 100
     method: str = "adam"
     step: float = 0.3
     step_end: float = 0.03

@@ -154,6 +154,9 @@ def hand_table_penetration(
     return jnp.max(depth), depth
 
 
+CONTACT_TOL = 0.002  # m of sphere overlap the penetration penalty tolerates (soft contact at the fingertips)
+
+
 def _scene_distance(sdf: GradientSDF, points: Float[Array, "P 3"]) -> Float[Array, " P"]:
     """Distance to object union table with Gradient-SDF derivatives (`sdf.distance` for the object, z for the table)."""
     return jnp.minimum(S.distance(sdf, points), points[:, 2] - sdf.table_z)
@@ -162,8 +165,8 @@ def _scene_distance(sdf: GradientSDF, points: Float[Array, "P 3"]) -> Float[Arra
 def penetration_penalty(
     hand: Hand, sdf: GradientSDF, wrist_pose: Float[Array, "4 4"], q: Float[Array, " Q"]
 ) -> Float[Array, ""]:
-    """Whole-hand collision penalty (metres^2): sum over collision spheres of max(0, r - d(c))^2 against object and
-    table at q, plus sum over the q = 0 box corners of max(0, -d(v))^2 at the same wrist pose.
+    """Whole-hand collision penalty (metres^2): sum over collision spheres of max(0, r - d(c) - CONTACT_TOL)^2
+    against object and table at q, plus sum over the q = 0 box corners of max(0, -d(v))^2 at the same wrist pose.
 
     The first term keeps the closed hand out of the object and the table (the paper's Fig. 7 failure mode); the
     second is what the approach filter (`pose_collides`) checks, and only matters when the wrist moves. A sum, not
@@ -177,7 +180,9 @@ def penetration_penalty(
         () penalty, differentiable wrt q and the wrist pose.
     """
     centres, radii = K.collision_spheres(hand, wrist_pose, q)
-    depth = jax.nn.relu(radii - _scene_distance(sdf, centres))
+    # Overlaps up to CONTACT_TOL are free: fingertip pads are meant to touch, and their contact points lie just
+    # inside their capsules, so a penalty from zero depth would hold every fingertip off the surface E_c pulls it to.
+    depth = jax.nn.relu(radii - _scene_distance(sdf, centres) - CONTACT_TOL)
     corners = jax.nn.relu(-_scene_distance(sdf, K.box_vertices(hand, wrist_pose)))
     return jnp.sum(depth**2) + jnp.sum(corners**2)
 

@@ -70,11 +70,25 @@ class Hand:
         return self.upper - self.lower
 
 
-jax.tree_util.register_dataclass(
+_DATA = ("model", "coupling", "lower", "upper", "root_inv", "palm_normal", "sphere_body", "sphere_pos", "sphere_radius",
+         "box_vertices")
+_META = ("spec", "contact_site_ids", "palm_site_id", "tetrahedron_site_ids")
+
+
+def _unflatten_hand(meta, leaves) -> Hand:
+    # Bypass __init__: JAX rebuilds pytrees with placeholder leaves (tracers, AOT ArgInfo) that the runtime type
+    # checks of the annotated fields would reject.
+    h = object.__new__(Hand)
+    for k, v in zip(_META + _DATA, (*meta, *leaves)):
+        object.__setattr__(h, k, v)
+    return h
+
+
+jax.tree_util.register_pytree_with_keys(
     Hand,
-    data_fields=["model", "coupling", "lower", "upper", "root_inv", "palm_normal", "sphere_body", "sphere_pos",
-                 "sphere_radius", "box_vertices"],
-    meta_fields=["spec", "contact_site_ids", "palm_site_id", "tetrahedron_site_ids"],
+    lambda h: (tuple((jax.tree_util.GetAttrKey(k), getattr(h, k)) for k in _DATA), tuple(getattr(h, k) for k in _META)),
+    _unflatten_hand,
+    lambda h: (tuple(getattr(h, k) for k in _DATA), tuple(getattr(h, k) for k in _META)),
 )
 
 

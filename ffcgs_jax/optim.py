@@ -28,7 +28,8 @@ def adam_update(grads, state: AdamState, lr, b1: float = 0.9, b2: float = 0.999,
     count = state.count + 1
     mu = jax.tree.map(lambda m, g: b1 * m + (1 - b1) * g, state.mu, grads)
     nu = jax.tree.map(lambda v, g: b2 * v + (1 - b2) * g * g, state.nu, grads)
-    c1 = 1 - b1 ** count.astype(jnp.float32)
-    c2 = 1 - b2 ** count.astype(jnp.float32)
+    t = count.astype(jnp.result_type(float))  # float64 under x64, so bias corrections match the parameters' precision
+    c1 = 1 - b1**t
+    c2 = 1 - b2**t
     updates = jax.tree.map(lambda m, v: -lr * (m / c1) / (jnp.sqrt(v / c2) + eps), mu, nu)
     return updates, AdamState(count, mu, nu)

@@ -85,7 +85,7 @@ def _optimize(hand: Hand, target: Target, poses, energy_cfg: EnergyConfig, optim
         else:
             delta = jax.tree.map(lambda a: -beta * a, g)
         delta = jax.tree.map(lambda d, s_: d * s_[None, :], delta, scale)
-        q_new = jnp.where(move[:, None], jnp.clip(x[0] + delta[0], hand.lower, hand.upper), x[0])
+        q_new = jnp.where(move[:, None], jnp.clip(x[0] + delta[0], hand.lower[None], hand.upper[None]), x[0])
         xi_new = jnp.where(move[:, None] & wrist, x[1] + delta[1], x[1])
         record = (terms.E, terms.E_g, terms.E_c, terms.contacts)
         return ((q_new, xi_new), active, iters + active, lp_ok & (terms.lp_ok | ~active), state), record

@@ -1,0 +1,71 @@
+"""Every notebook in notebooks/ runs top to bottom with small sizes (STYLE §8), and is stored without outputs.
+
+The kernel is pinned to this interpreter: a `python3` kernelspec whose argv is `sys.executable` is written to a tmp
+dir put first on JUPYTER_PATH, so a user-level or system `python3` kernelspec pointing at another Python cannot
+shadow the venv (ipykernel's own spec in the venv would also work in a fresh `pip install -e ".[test]"`).
+"""
+
+import json
+import os
+import pathlib
+import sys
+
+import nbclient
+import nbformat
+import pytest
+
+NOTEBOOKS = sorted((pathlib.Path(__file__).parent.parent / "notebooks").glob("*.ipynb"))
+SLOW: list[str] = []  # notebook file names too slow for the default suite; run with -m slow
+SMALL = {"FFCGS_NB_N": "4", "FFCGS_NB_ITERS": "5", "FFCGS_NB_RES": "16", "FFCGS_NB_OBJECT": "box"}
+
+PARAMS = [pytest.param(p, id=p.name, marks=[pytest.mark.slow] if p.name in SLOW else []) for p in NOTEBOOKS]
+
+
+def _images(cell) -> list[dict]:
+    return [o for o in cell.get("outputs", []) if o.get("output_type") in ("display_data", "execute_result")
+            and "image/png" in o.get("data", {})]
+
+
+@pytest.fixture
+def kernel_env(tmp_path, monkeypatch):
+    """Small sizes for the kernel (it inherits os.environ) and a `python3` kernelspec that runs this interpreter."""
+    for k, v in SMALL.items():
+        monkeypatch.setenv(k, v)
+    monkeypatch.delenv("MPLBACKEND", raising=False)  # keep ipykernel's inline backend so figures become PNGs
+    spec = tmp_path / "jupyter" / "kernels" / "python3"
+    spec.mkdir(parents=True)
+    (spec / "kernel.json").write_text(json.dumps({
+        "argv": [sys.executable, "-m", "ipykernel_launcher", "-f", "{connection_file}"],
+        "display_name": "Python 3 (test)", "language": "python"}))
+    monkeypatch.setenv("JUPYTER_PATH", os.pathsep.join(filter(None, [str(tmp_path / "jupyter"),
+                                                                     os.environ.get("JUPYTER_PATH")])))
+    work = tmp_path / "work"
+    work.mkdir()
+    return work
+
+
+def test_notebooks_found():
+    assert NOTEBOOKS, "no notebooks/*.ipynb"
+
+
+@pytest.mark.parametrize("path", PARAMS)
+def test_outputs_stripped(path):
+    nb = nbformat.read(path, as_version=4)
+    for i, cell in enumerate(nb.cells):
+        if cell.cell_type == "code":
+            assert cell.outputs == [], f"{path.name} cell {i} has stored outputs; strip them before commit"
+            assert cell.execution_count is None, f"{path.name} cell {i} has an execution count"
+
+
+@pytest.mark.parametrize("path", PARAMS)
+def test_notebook_runs(path, kernel_env):
+    nb = nbformat.read(path, as_version=4)
+    client = nbclient.NotebookClient(nb, timeout=600, kernel_name="python3",
+                                     resources={"metadata": {"path": str(kernel_env)}})
+    client.execute()  # raises CellExecutionError on the first failing cell
+    if path.name == "quickstart.ipynb":
+        code = [c for c in nb.cells if c.cell_type == "code"]
+        picture = [c for c in code if "grasps_image" in c.source]
+        plot = [c for c in code if "plt.subplots" in c.source]
+        assert picture and _images(picture[0]), "the grasp picture cell shows no image/png"
+        assert plot and _images(plot[0]), "the energy plot cell shows no image"
