@@ -36,6 +36,10 @@ _SOLVED = (proxqp.QPSolverOutput.PROXQP_SOLVED,)
 
 
 def _threads() -> int:
+    """Threads for `solve_in_parallel`: FFCGS_LP_THREADS if set, else every core this process may use."""
+    env = os.environ.get("FFCGS_LP_THREADS")
+    if env and env.isdigit() and int(env) > 0:
+        return int(env)
     return max(1, len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1))
 
 
