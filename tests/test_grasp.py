@@ -125,7 +125,7 @@ def test_deterministic_for_a_seed_and_the_executable_is_reused(svh, meshes, box_
     for k, v in box_run.arrays.items():
         if k not in ("synthesis_s", "compile_s"):
             np.testing.assert_array_equal(again[k], v, err_msg=k)
-    assert again.arrays["compile_s"] < 0.5 and again.arrays["compile_s"] < 0.1 * box_run.arrays["compile_s"]
+    assert again.arrays["compile_s"] < 0.5  # reused (a fresh compile of the SVH pipeline takes tens of seconds)
     other = synth(svh, meshes["box"], dataclasses.replace(BOX, seed=1), "box")
     assert other.arrays["compile_s"] < 0.5  # the seed is not compiled in
     assert np.abs(other["wrist_pose"] - box_run["wrist_pose"]).max() > 1e-3
