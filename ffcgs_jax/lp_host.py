@@ -13,6 +13,9 @@ lam is the wrench direction that separates the hull from the origin (0 when the 
 multipliers of the constraints t <= w_i^T lam are the primal alpha (they sum to 1). By the envelope theorem the
 derivative of the optimal value is dE_g/dW = lam alpha^T, which the backward pass applies in pure JAX.
 
+Batching: `BatchQP` + `solve_in_parallel`. Its `init_qp_in_place` cannot take `HessianType.Zero`; with H = None the
+dense type solves the same LP, and a `VectorQP` of Zero-type QPs gave the same values with no faster solve here.
+
 The callback never raises: every instance returns a status, and a failed or inaccurate solve comes back with
 `ok = False`, a finite value and a zero gradient, for the caller to mask.
 """
