@@ -14,9 +14,8 @@ from pathlib import Path
 import numpy as np
 import tyro
 
-from ffcgs_jax.config import RenderConfig, SDFConfig, check_all, from_dict
+from ffcgs_jax.config import GraspConfig, RenderConfig, SDFConfig, check_all, from_dict
 from ffcgs_jax.errors import FfcgsError
-from ffcgs_jax.grasp import GraspConfig, summary_rows, synthesize
 
 
 @dataclasses.dataclass(frozen=True)
@@ -177,6 +176,7 @@ class GraspCmd:
 def run_grasp(cmd: GraspCmd) -> None:
     from ffcgs_jax import grasp_io, mesh_io
     from ffcgs_jax import kinematics as K
+    from ffcgs_jax.grasp import summary_rows, synthesize
 
     hand = K.load_hand(cmd.hand)
     mesh = mesh_io.load_mesh(cmd.object, scale=cmd.grasp.sdf.scale)

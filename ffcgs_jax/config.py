@@ -6,6 +6,7 @@ argument.
 """
 
 import dataclasses
+import math
 import tomllib
 import typing
 from pathlib import Path
@@ -149,6 +150,105 @@ class OptimConfig:
         _range("optim.step_end", self.step_end, 0.0, 1e3)
         _range("optim.eps_g", self.eps_g, 0.0, 10.0)
         _range("optim.eps_c", self.eps_c, 0.0, 1.0)
+
+
+@dataclasses.dataclass(frozen=True)
+class FilterConfig:
+    """Thresholds of the pose and grasp filters.
+
+    Attributes:
+        palm_up_max: a pose is discarded when the world z component of its unit palm normal exceeds this. 0 keeps
+            palms facing sideways or down (the paper's "palm pointing upwards" rule, for an arm above the table);
+            1 disables the filter, -1 would keep only palms facing straight down.
+        clearance: metres each box corner must stay outside the object and the table (0 = touching is allowed).
+        tip_table_margin: metres the cached fingertip positions must stay above the table plane.
+    """
+
+    palm_up_max: float = 0.0
+    clearance: float = 0.0
+    tip_table_margin: float = 0.0
+
+    def check(self) -> None:
+        _range("filters.palm_up_max", self.palm_up_max, -1.0, 1.0)
+        _range("filters.clearance", self.clearance, 0.0, 1.0)
+        _range("filters.tip_table_margin", self.tip_table_margin, -1.0, 1.0)
+
+
+@dataclasses.dataclass(frozen=True)
+class SamplerConfig:
+    """Options of the baseline samplers.
+
+    Attributes:
+        translation_scale: "random": the palm centre is uniform in the object's axis-aligned bounding box scaled by
+            this factor about its centre (paper, V.A.1: "two times the size of the object's bounding box").
+        standoff: "geometric": metres from the surface point to the palm centre, along the outward normal.
+            0.05 m, the smallest round standoff at which the open hand (q = 0) clears a flat face: its farthest
+            collision-box corner along the palm normal (the thumb's proximal link) lies 4.5 cm in front of the
+            palm centre, and on the built-in box the fraction of candidates passing the box-corner filter rises
+            from 26 % at 4-4.5 cm to 34 % at 5 cm and stays there. A larger standoff only moves the fingertips
+            away: along the palm normal they reach at most 4.2 cm (fingers, near mid-closure q = (lower +
+            upper) / 2) and 4.6 cm (thumb, at 30 % closure), and the fingertips' mean distance to the built-in
+            objects at mid-closure grows by about 0.7 cm per cm of standoff.
+        oversample: "geometric": candidates drawn per requested pose before the collision and palm-up filters.
+            About 6 % pass on the built-in mug (its cavity and the table reject most) and 34 % on the box, so
+            32 leaves about twice the poses needed on the mug; raise it for objects with little free surface.
+    """
+
+    translation_scale: float = 2.0
+    standoff: float = 0.05
+    oversample: int = 32
+
+    def check(self) -> None:
+        for name, lo, hi in (("translation_scale", 0.0, 100.0), ("standoff", 0.0, 1.0)):
+            v = getattr(self, name)
+            if not (isinstance(v, (int, float)) and math.isfinite(v) and lo < v <= hi):
+                raise FfcgsError(f"sampler.{name} must be a number in ({lo}, {hi}], got {v!r}")
+        if not (isinstance(self.oversample, int) and 1 <= self.oversample <= 4096):
+            raise FfcgsError(f"sampler.oversample must be an integer in [1, 4096], got {self.oversample!r}")
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# Rotations and frames (single item)
+# ----------------------------------------------------------------------------------------------------------------
+
+
+SAMPLERS = ("geometric", "random")  # the names `samplers.CORES` implements
+
+
+@dataclasses.dataclass(frozen=True)
+class GraspConfig:
+    """Everything `synthesize` needs besides the hand and the object.
+
+    Attributes:
+        n: wrist poses sampled and optimised as one batch.
+        sampler: "geometric" or "random" (Table I's baselines); the learned sampler plugs in later.
+        seed: PRNG seed of the sampler.
+        max_penetration: a grasp whose hand collision spheres reach deeper than this into the object (metres) is
+            not valid. 1 cm, as the physics test's initial-penetration rule; the paper does not check this.
+        max_contact_rms: a grasp whose fingertips are farther than this from the surface, as RMS (E_c, metres), is
+            not valid: it does not touch the object. 1 cm lets one finger of five miss by about 2 cm.
+    """
+
+    n: int = 32
+    sampler: str = "geometric"
+    seed: int = 0
+    max_penetration: float = 0.01
+    max_contact_rms: float = 0.01
+    sdf: SDFConfig = SDFConfig()
+    energy: EnergyConfig = EnergyConfig()
+    optim: OptimConfig = OptimConfig()
+    filters: FilterConfig = FilterConfig()
+    sampling: SamplerConfig = SamplerConfig()
+
+    def check(self) -> None:
+        if not 1 <= self.n <= 1_000_000:
+            raise FfcgsError(f"n must be >= 1 (and at most 1e6), got {self.n}")
+        if self.sampler not in SAMPLERS:
+            raise FfcgsError(f"unknown sampler {self.sampler!r}; samplers: {', '.join(SAMPLERS)}")
+        if not 0 <= self.max_penetration <= 1:
+            raise FfcgsError(f"max_penetration must be in [0, 1] m, got {self.max_penetration}")
+        if not 0 <= self.max_contact_rms <= 1:
+            raise FfcgsError(f"max_contact_rms must be in [0, 1] m, got {self.max_contact_rms}")
 
 
 def _range(name: str, value: int | float, lo: int | float, hi: int | float) -> None:

@@ -12,45 +12,16 @@ traced inside jit; the `*_batch` versions vmap over a leading B axis. Extra dim 
 optimisation path.
 """
 
-import dataclasses
-import math
 
 import jax
 import jax.numpy as jnp
 
 from ffcgs_jax import kinematics as K
 from ffcgs_jax import sdf as S
-from ffcgs_jax.errors import FfcgsError
+from ffcgs_jax.config import FilterConfig
 from ffcgs_jax.kinematics import Hand
 from ffcgs_jax.sdf import GradientSDF
 from ffcgs_jax.types import Array, Bool, Float
-
-
-@dataclasses.dataclass(frozen=True)
-class FilterConfig:
-    """Thresholds of the pose and grasp filters.
-
-    Attributes:
-        palm_up_max: a pose is discarded when the world z component of its unit palm normal exceeds this. 0 keeps
-            palms facing sideways or down (the paper's "palm pointing upwards" rule, for an arm above the table);
-            1 disables the filter, -1 would keep only palms facing straight down.
-        clearance: metres each box corner must stay outside the object and the table (0 = touching is allowed).
-        tip_table_margin: metres the cached fingertip positions must stay above the table plane.
-    """
-
-    palm_up_max: float = 0.0
-    clearance: float = 0.0
-    tip_table_margin: float = 0.0
-
-    def check(self) -> None:
-        _range("filter.palm_up_max", self.palm_up_max, -1.0, 1.0)
-        _range("filter.clearance", self.clearance, 0.0, 1.0)
-        _range("filter.tip_table_margin", self.tip_table_margin, -1.0, 1.0)
-
-
-def _range(name: str, value: float, lo: float, hi: float) -> None:
-    if not (isinstance(value, (int, float)) and math.isfinite(value) and lo <= value <= hi):
-        raise FfcgsError(f"{name} must be a number in [{lo}, {hi}], got {value!r}")
 
 
 # ----------------------------------------------------------------------------------------------------------------

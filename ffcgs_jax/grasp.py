@@ -18,48 +18,13 @@ import trimesh
 from ffcgs_jax import filters as F
 from ffcgs_jax import metrics, samplers
 from ffcgs_jax import sdf as sdf_mod
-from ffcgs_jax.config import EnergyConfig, OptimConfig, SDFConfig, check_all
+from ffcgs_jax.config import EnergyConfig, GraspConfig, OptimConfig, check_all
 from ffcgs_jax.energy import Target, make_target
-from ffcgs_jax.errors import FfcgsError
 from ffcgs_jax import kinematics as K
 from ffcgs_jax.kinematics import Hand
 from ffcgs_jax.optimize import OptResult, _optimize
 
 
-@dataclasses.dataclass(frozen=True)
-class GraspConfig:
-    """Everything `synthesize` needs besides the hand and the object.
-
-    Attributes:
-        n: wrist poses sampled and optimised as one batch.
-        sampler: "geometric" or "random" (Table I's baselines); the learned sampler plugs in later.
-        seed: PRNG seed of the sampler.
-        max_penetration: a grasp whose hand collision spheres reach deeper than this into the object (metres) is
-            not valid. 1 cm, as the physics test's initial-penetration rule; the paper does not check this.
-        max_contact_rms: a grasp whose fingertips are farther than this from the surface, as RMS (E_c, metres), is
-            not valid: it does not touch the object. 1 cm lets one finger of five miss by about 2 cm.
-    """
-
-    n: int = 32
-    sampler: str = "geometric"
-    seed: int = 0
-    max_penetration: float = 0.01
-    max_contact_rms: float = 0.01
-    sdf: SDFConfig = SDFConfig()
-    energy: EnergyConfig = EnergyConfig()
-    optim: OptimConfig = OptimConfig()
-    filters: F.FilterConfig = F.FilterConfig()
-    sampling: samplers.SamplerConfig = samplers.SamplerConfig()
-
-    def check(self) -> None:
-        if not 1 <= self.n <= 1_000_000:
-            raise FfcgsError(f"n must be >= 1 (and at most 1e6), got {self.n}")
-        if self.sampler not in samplers.names():
-            raise FfcgsError(f"unknown sampler {self.sampler!r}; samplers: {', '.join(samplers.names())}")
-        if not 0 <= self.max_penetration <= 1:
-            raise FfcgsError(f"max_penetration must be in [0, 1] m, got {self.max_penetration}")
-        if not 0 <= self.max_contact_rms <= 1:
-            raise FfcgsError(f"max_contact_rms must be in [0, 1] m, got {self.max_contact_rms}")
 
 
 class DeviceOut(NamedTuple):

@@ -11,8 +11,6 @@ The learned sampler plugs into the same interface.
   point; candidates that fail the pose filters of Algorithm 1 are dropped (see `geometric_candidates`).
 """
 
-import dataclasses
-import math
 from collections.abc import Callable
 from functools import partial
 from typing import NamedTuple
@@ -24,6 +22,7 @@ import numpy as np
 
 from ffcgs_jax import filters as F
 from ffcgs_jax import sdf as S
+from ffcgs_jax.config import SAMPLERS, SamplerConfig
 from ffcgs_jax.errors import FfcgsError
 from ffcgs_jax.kinematics import Hand
 from ffcgs_jax.sdf import GradientSDF
@@ -32,42 +31,6 @@ from ffcgs_jax.types import Array, Bool, Float
 Sampler = Callable[[jax.Array, GradientSDF, int], jax.Array]
 
 
-@dataclasses.dataclass(frozen=True)
-class SamplerConfig:
-    """Options of the baseline samplers.
-
-    Attributes:
-        translation_scale: "random": the palm centre is uniform in the object's axis-aligned bounding box scaled by
-            this factor about its centre (paper, V.A.1: "two times the size of the object's bounding box").
-        standoff: "geometric": metres from the surface point to the palm centre, along the outward normal.
-            0.05 m, the smallest round standoff at which the open hand (q = 0) clears a flat face: its farthest
-            collision-box corner along the palm normal (the thumb's proximal link) lies 4.5 cm in front of the
-            palm centre, and on the built-in box the fraction of candidates passing the box-corner filter rises
-            from 26 % at 4-4.5 cm to 34 % at 5 cm and stays there. A larger standoff only moves the fingertips
-            away: along the palm normal they reach at most 4.2 cm (fingers, near mid-closure q = (lower +
-            upper) / 2) and 4.6 cm (thumb, at 30 % closure), and the fingertips' mean distance to the built-in
-            objects at mid-closure grows by about 0.7 cm per cm of standoff.
-        oversample: "geometric": candidates drawn per requested pose before the collision and palm-up filters.
-            About 6 % pass on the built-in mug (its cavity and the table reject most) and 34 % on the box, so
-            32 leaves about twice the poses needed on the mug; raise it for objects with little free surface.
-    """
-
-    translation_scale: float = 2.0
-    standoff: float = 0.05
-    oversample: int = 32
-
-    def check(self) -> None:
-        for name, lo, hi in (("translation_scale", 0.0, 100.0), ("standoff", 0.0, 1.0)):
-            v = getattr(self, name)
-            if not (isinstance(v, (int, float)) and math.isfinite(v) and lo < v <= hi):
-                raise FfcgsError(f"sampler.{name} must be a number in ({lo}, {hi}], got {v!r}")
-        if not (isinstance(self.oversample, int) and 1 <= self.oversample <= 4096):
-            raise FfcgsError(f"sampler.oversample must be an integer in [1, 4096], got {self.oversample!r}")
-
-
-# ----------------------------------------------------------------------------------------------------------------
-# Rotations and frames (single item)
-# ----------------------------------------------------------------------------------------------------------------
 
 
 def quat_to_matrix(quat: Float[Array, " 4"]) -> Float[Array, "3 3"]:
@@ -280,6 +243,7 @@ def sample_geometric(
 # The cores by name, (hand, palm_root, key, sdf, n, cfg, filters) -> (n, 4, 4): for pipelines that jit around them (no
 # host checks; palm_root from `palm_centre_root`). `make_sampler` wraps one with the checks and its own jit.
 CORES = {"random": sample_random, "geometric": sample_geometric}
+assert sorted(CORES) == sorted(SAMPLERS), "config.SAMPLERS must name the samplers implemented here"
 
 
 def names() -> list[str]:

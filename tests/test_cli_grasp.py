@@ -8,14 +8,11 @@ import contextlib
 import io
 import re
 
-import jax
 import numpy as np
 import pytest
 from PIL import Image
 
 from ffcgs_jax import cli, grasp_io
-from ffcgs_jax import grasp as G
-from ffcgs_jax import kinematics as K
 from test_grasp_io import read_raw, schema_errors
 
 N, ITERS = 4, 5
