@@ -4,7 +4,6 @@ from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
-import numpy as np
 from jaxtyping import Array, Bool, Float
 
 from ffcgs_jax import filters as F
@@ -71,7 +70,3 @@ def energy(
     P = F.penetration_penalty(hand, target.sdf, wrist_pose, q) if cfg.a_pen > 0 else jnp.zeros_like(E_c)
     E = E_g + cfg.a_c * E_c + cfg.a_q * E_q + cfg.a_pen * P
     return E, Terms(E, E_g, E_c, E_q, P, ok, c)
-
-
-def as_numpy(terms: Terms) -> dict[str, np.ndarray]:
-    return {k: np.asarray(v) for k, v in terms._asdict().items()}

@@ -16,15 +16,13 @@ import numpy as np
 import trimesh
 
 from ffcgs_jax import filters as F
+from ffcgs_jax import kinematics as K
 from ffcgs_jax import metrics, samplers
 from ffcgs_jax import sdf as sdf_mod
 from ffcgs_jax.config import EnergyConfig, GraspConfig, OptimConfig, check_all
 from ffcgs_jax.energy import Target, make_target
-from ffcgs_jax import kinematics as K
 from ffcgs_jax.kinematics import Hand
 from ffcgs_jax.optimize import OptResult, _optimize
-
-
 
 
 class DeviceOut(NamedTuple):
@@ -112,9 +110,7 @@ def synthesize(hand: Hand, mesh: trimesh.Trimesh, cfg: GraspConfig = GraspConfig
     key = jax.random.PRNGKey(cfg.seed)
     given = None
     if poses is not None:
-        from ffcgs_jax.kinematics import check_wrist_poses
-
-        given = jnp.asarray(check_wrist_poses(poses, "wrist poses").reshape(-1, 4, 4), target.sdf.grid.dtype)
+        given = jnp.asarray(K.check_wrist_poses(poses, "wrist poses").reshape(-1, 4, 4), target.sdf.grid.dtype)
     run, compile_s = compile_device(hand, target, cfg, given)
     t0 = time.perf_counter()
     out = jax.block_until_ready(run(key))
@@ -158,7 +154,7 @@ def _finish(hand, mesh, target, cfg, out: DeviceOut, synthesis_s, compile_s, obj
         "contacts": contacts,
         "E": np.asarray(opt.final.E, np.float64),
         "E_g": np.asarray(opt.final.E_g, np.float64),
-        "E_c": np.asarray(opt.final.E_c, np.float64),
+        "E_c": E_c,
         "E_q": np.asarray(opt.final.E_q, np.float64),
         "epsilon": np.asarray(ev["epsilon"], np.float64),
         "force_closure": np.asarray(ev["force_closure"]),

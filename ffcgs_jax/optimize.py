@@ -1,8 +1,10 @@
-"""Algorithm 1 of the paper over a whole batch of wrist poses: one jit-compiled gradient descent on q.
+"""Algorithm 1 of the paper over a whole batch of wrist poses: one jit-compiled descent on q (and the wrist).
 
-Every pose starts from q = 0 clamped into the joint limits (the SVH's open hand), takes T steps
-q <- clip(q - beta_t dE/dq) with beta_t decaying linearly from `step` to `step_end`, and stops early (masked, the
-batch keeps its shape) once E_g < eps_g with the fingertips on the surface (E_c < eps_c). A pose whose LP failed
+Every pose starts from q = 0 clamped into the joint limits (the SVH's open hand) and takes T steps: the paper's
+q <- clip(q - beta_t dE/dq) (`method="gd"`, beta_t decaying linearly from `step` to `step_end`) or the same with
+Adam's per-channel scaling (`method="adam"`, `lr` to `lr_end`). With `wrist=True` a 6-D twist of the wrist pose
+descends with q (`twist_pose`). A pose stops early (masked, the batch keeps its shape) once E_g < eps_g with the
+fingertips on the surface (E_c < eps_c). A pose whose LP failed
 at an iteration is not moved at that iteration. Fingertip positions are recorded at every iteration: they are the
 path the fingers sweep while closing, which the table filter checks.
 """
