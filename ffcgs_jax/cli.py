@@ -5,6 +5,7 @@ Every subcommand takes `--config FILE.toml` (sections as in `configs/`) and then
 """
 
 import dataclasses
+import json
 import sys
 import time
 import warnings
@@ -14,7 +15,7 @@ from pathlib import Path
 import numpy as np
 import tyro
 
-from ffcgs_jax.config import GraspConfig, RenderConfig, SDFConfig, check_all, from_dict
+from ffcgs_jax.config import PROTOCOLS, GraspConfig, PhysicsConfig, RenderConfig, SDFConfig, check_all, from_dict
 from ffcgs_jax.errors import FfcgsError
 
 
@@ -170,7 +171,27 @@ class GraspCmd:
     png: str | None = None
     poses: str | None = None
     hand: str = "svh"
+    validate: bool = False
+    protocol: str = "both"
     grasp: GraspConfig = GraspConfig()
+    physics: PhysicsConfig = PhysicsConfig()
+
+    def check(self) -> None:
+        _protocols(self.protocol)
+
+
+def _protocols(name: str) -> tuple[str, ...]:
+    if name == "both":
+        return PROTOCOLS
+    if name not in PROTOCOLS:
+        raise FfcgsError(f"unknown protocol {name!r}; protocols: {', '.join(PROTOCOLS)}, both")
+    return (name,)
+
+
+def _print_rows(rows: list[tuple[str, str]]) -> None:
+    width = max(len(k) for k, _ in rows)
+    for k, v in rows:
+        print(f"{k:<{width}}  {v}")
 
 
 def run_grasp(cmd: GraspCmd) -> None:
@@ -182,11 +203,12 @@ def run_grasp(cmd: GraspCmd) -> None:
     mesh = mesh_io.load_mesh(cmd.object, scale=cmd.grasp.sdf.scale)
     poses = None if cmd.poses is None else _read_poses(cmd.poses)
     gs = synthesize(hand, mesh, cmd.grasp, Path(cmd.object).stem, poses=poses)
-    grasp_io.save_npz(gs, cmd.out)
     rows = summary_rows(gs)
-    width = max(len(k) for k, _ in rows)
-    for k, v in rows:
-        print(f"{k:<{width}}  {v}")
+    if cmd.validate:
+        gs, physics_rows = _validate(gs, hand.spec, mesh, cmd)
+        rows += physics_rows
+    grasp_io.save_npz(gs, cmd.out)
+    _print_rows(rows)
     print(f"wrote {cmd.out}")
     if cmd.mcap:
         grasp_io.write_mcap(gs, cmd.mcap, hand.spec.name, rows)
@@ -197,6 +219,135 @@ def run_grasp(cmd: GraspCmd) -> None:
         image, _ = grasp_plot.grasps_image(hand, mesh, gs)
         render.save_png(image, cmd.png)
         print(f"wrote {cmd.png}")
+
+
+def _validate(gs, spec, mesh, cmd: GraspCmd):
+    """Physics-test the valid grasps and keep only those that pass every protocol asked for."""
+    from ffcgs_jax import physics
+
+    protocols = _protocols(cmd.protocol)
+    idx = np.flatnonzero(gs["valid"])
+    if len(idx) == 0:
+        return gs.select(idx), [("kept after --validate", "0 of 0 valid grasps")]
+    t0 = time.perf_counter()
+    res = _run_physics(spec, mesh, gs["wrist_pose"][idx], gs["q"][idx], cmd.physics, protocols, "cpu")
+    passed = np.logical_and.reduce([res[f"{p.replace('-', '_')}_success"] for p in protocols])
+    kept = gs.select(idx[passed])
+    for k, v in res.items():
+        kept.arrays[k] = v[passed]
+    rows = physics.summary_rows(res, protocols)
+    rows.append(("kept after --validate", f"{int(passed.sum())} of {len(idx)} valid grasps"
+                 f" ({time.perf_counter() - t0:.1f} s)"))
+    return kept, rows
+
+
+def _run_physics(spec, mesh, wrist_pose, q, cfg: PhysicsConfig, protocols, backend: str) -> dict:
+    from tqdm import tqdm
+
+    from ffcgs_jax import physics
+
+    with tqdm(total=len(q) * len(protocols), desc="physics", unit="grasp", disable=None, leave=False) as bar:
+        return physics.evaluate(spec, mesh, wrist_pose, q, cfg, protocols, backend, progress=bar.update)
+
+
+@dataclasses.dataclass(frozen=True)
+class EvalCmd:
+    """Physics test of grasps in MuJoCo (lift-shake, six-dir): success rates with 95 % Wilson intervals.
+
+    Attributes:
+        grasps: a grasps.npz from `ffcgs grasp` (wrist_pose, q). Per-grasp results are added to it (or `--out`).
+        object: the object the grasps are for: built-in name or mesh file; default the npz's object name.
+        protocol: lift-shake, six-dir or both.
+        out: write the npz with results here instead of updating `grasps`.
+        video: also record one trial of the first protocol to this .gif or .mp4.
+        video_index: which grasp the video shows; default the first valid grasp that passed (else the first).
+        all: test every grasp, not only those marked valid by the synthesis.
+        backend: cpu (MuJoCo, threads) or mjx (MuJoCo MJX on the JAX device).
+        hand: built-in hand name or a hand-spec TOML.
+        scale: multiplies the object's coordinates (0.001 for millimetre meshes).
+        physics: simulation and success-rule settings (flags without prefix: --friction, --mass, ...).
+    """
+
+    grasps: tyro.conf.Positional[str] = tyro.MISSING
+    object: str | None = None
+    protocol: str = "both"
+    out: str | None = None
+    video: str | None = None
+    video_index: int | None = None
+    all: bool = False
+    backend: str = "cpu"
+    hand: str = "svh"
+    scale: float = 1.0
+    physics: PhysicsConfig = PhysicsConfig()
+
+    def check(self) -> None:
+        _protocols(self.protocol)
+        if self.backend not in ("cpu", "mjx"):
+            raise FfcgsError(f"unknown backend {self.backend!r}; backends: cpu, mjx")
+        if self.video is not None and Path(self.video).suffix.lower() not in (".gif", ".mp4"):
+            raise FfcgsError(f"--video must end in .gif or .mp4, got {self.video}")
+
+
+def run_eval(cmd: EvalCmd) -> None:
+    from ffcgs_jax import grasp_io, hand_spec, mesh_io, objects, physics
+
+    data = grasp_io.load_npz(cmd.grasps)
+    missing = [k for k in ("wrist_pose", "q") if k not in data]
+    if missing:
+        raise FfcgsError(f"{cmd.grasps} has no {' or '.join(missing)} array: is it a grasps.npz from ffcgs grasp?")
+    name = cmd.object
+    if name is None:
+        stored = str(data.get("object_name", ""))
+        if stored not in objects.names():
+            raise FfcgsError(f"{cmd.grasps} does not name a built-in object ({stored!r}): pass --object")
+        name = stored
+    spec = hand_spec.load_spec(cmd.hand)
+    mesh = mesh_io.load_mesh(name, scale=cmd.scale)
+    protocols = _protocols(cmd.protocol)
+    valid = np.asarray(data["valid"], bool) if "valid" in data else np.ones(len(data["q"]), bool)
+    idx = np.arange(len(valid)) if cmd.all else np.flatnonzero(valid)
+    if len(idx) == 0:
+        raise FfcgsError(f"{cmd.grasps} has no valid grasps to test (use --all to test them anyway)")
+    t0 = time.perf_counter()
+    res = _run_physics(spec, mesh, data["wrist_pose"][idx], data["q"][idx], cmd.physics, protocols, cmd.backend)
+    seconds = time.perf_counter() - t0
+    n = len(valid)
+    for k, v in res.items():  # grasps not tested get NaN / False / reason -1
+        full = np.full((n, *v.shape[1:]), False if v.dtype == bool else (-1 if v.dtype.kind == "i" else np.nan),
+                       dtype=v.dtype)
+        full[idx] = v
+        data[k] = full
+    data["physics_tested"] = np.isin(np.arange(n), idx)
+    data["physics_config_json"] = np.array(json.dumps(dataclasses.asdict(cmd.physics)))
+    out = cmd.out or cmd.grasps
+    _save_arrays(data, out)
+    rows = physics.summary_rows(res, protocols)
+    rows.append(("grasps tested", f"{len(idx)} ({'all' if cmd.all else 'valid'}) in {seconds:.1f} s, "
+                 f"{len(idx) * len(protocols) / seconds:.2f} trials/s, backend {cmd.backend}"))
+    _print_rows(rows)
+    print(f"wrote {out}")
+    if cmd.video:
+        from ffcgs_jax import physics_video
+
+        first = res[f"{protocols[0].replace('-', '_')}_success"]
+        pick = cmd.video_index
+        if pick is None:
+            pick = int(idx[np.argmax(first)]) if first.any() else int(idx[0])
+        if not 0 <= pick < n:
+            raise FfcgsError(f"--video-index must be in [0, {n - 1}], got {pick}")
+        scene = physics.scenes(spec, mesh, cmd.physics, protocols[:1])[protocols[0]]
+        batch, _, _ = physics.prepare(scene, mesh, data["wrist_pose"][pick:pick + 1], data["q"][pick:pick + 1],
+                                      cmd.physics)
+        frames = physics_video.record(scene, batch, 0, cmd.physics, protocols[0], cmd.video)
+        print(f"wrote {cmd.video} (grasp {pick}, {protocols[0]}, {frames} frames)")
+
+
+def _save_arrays(data: dict, path: str) -> None:
+    try:
+        with open(path, "wb") as f:
+            np.savez_compressed(f, **data)
+    except OSError as e:
+        raise FfcgsError(f"cannot write {path}: {e}") from None
 
 
 def _read_poses(path: str) -> np.ndarray:
@@ -220,6 +371,7 @@ def _read_poses(path: str) -> np.ndarray:
 
 COMMANDS: dict[str, tuple[type, Callable]] = {
     "grasp": (GraspCmd, run_grasp),
+    "eval": (EvalCmd, run_eval),
     "objects": (ObjectsCmd, run_objects),
     "sdf": (SdfCmd, run_sdf),
     "hand": (HandCmd, run_hand),

@@ -94,6 +94,13 @@ class GraspSet:
     def __getitem__(self, key: str) -> np.ndarray:
         return self.arrays[key]
 
+    def select(self, idx) -> "GraspSet":
+        """The grasps at `idx` (per-grasp arrays and trace columns; scalars kept)."""
+        n = len(self["valid"])
+        arrays = {k: (v[idx] if v.ndim and v.shape[0] == n and k not in ("channel_names", "joint_names") else v)
+                  for k, v in self.arrays.items()}
+        return GraspSet(arrays, {k: v[:, idx] for k, v in self.trace.items()}, self.config, self.object_name)
+
     def order(self) -> np.ndarray:
         """Grasp indices, valid ones first, each group by increasing E."""
         return np.lexsort((self["E"], ~self["valid"]))

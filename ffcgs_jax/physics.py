@@ -6,7 +6,9 @@ Execution of one grasp (all grasps of a batch in parallel):
    path from the open hand (q = 0, which the synthesis filters checked against the object and the table) to q.
    If the hand then reaches deeper than `max_initial_penetration` into the object at q, the grasp fails
    ("penetration") without simulating.
-2. Close: the servo targets ramp linearly, over `close_time`, to q plus a squeeze: `squeeze` radians along
+2. Close (six-dir: with the floating object welded in place, as the table holds it in lift-shake, so the first
+   finger to arrive does not push it away; the weld is released when the test starts): the servo targets ramp
+   linearly, over `close_time`, to q plus a squeeze: `squeeze` radians along
    sum_i J_i^T (-n_i) over the fingertips within `contact_band` of the surface (J_i the tip's channel Jacobian,
    n_i the mesh's outward normal there). The servos end up pressing with about kp x squeeze. Then `settle_time`.
 3. Test, by protocol:
@@ -46,19 +48,23 @@ CHUNK = 250  # steps per rollout call: bounds the state buffer (B x CHUNK x nsta
 LIFT_HOLD = 0.25  # seconds of rest between the lift and the shaking
 DIRECTIONS = np.array([[1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1], [0, 0, -1]], np.float64)
 REASONS = ("ok", "penetration", "lost", "slip")
+BACKENDS = ("cpu", "mjx")
+GROUP_PER_THREAD = 4  # CPU grasps per thread per rollout group: keeps threads busy and the progress bar moving
 _STATE = mujoco.mjtState.mjSTATE_FULLPHYSICS
 _CTRL = mujoco.mjtState.mjSTATE_CTRL | mujoco.mjtState.mjSTATE_MOCAP_POS | mujoco.mjtState.mjSTATE_MOCAP_QUAT
-_CTRL_FORCE = _CTRL | mujoco.mjtState.mjSTATE_XFRC_APPLIED
 
 
 @dataclasses.dataclass(frozen=True)
 class Segment:
     """`n` steps of open-loop control: `make(i0, i1)` gives (ctrl (B, k, Q), wrist offset (k, 3)) for steps
-    [i0, i1) of the segment, k = i1 - i0 or 1 when constant; `force` (3,) world force on the object or None."""
+    [i0, i1) of the segment, k = i1 - i0 or 1 when constant; `force` (3,) world force on the object or None;
+    `hold`: the object is welded in place (six-dir closes on a floating object, which the table holds in
+    lift-shake)."""
 
     n: int
     make: Callable[[int, int], tuple[np.ndarray, np.ndarray]]
     force: np.ndarray | None = None
+    hold: bool = False
 
 
 @dataclasses.dataclass
@@ -94,7 +100,8 @@ def scenes(spec: HandSpec, mesh: trimesh.Trimesh, cfg: PhysicsConfig, protocols,
     out = {}
     for p in protocols:
         lift = p == "lift-shake"
-        out[p] = physics_scene.build(spec, mesh, parts, cfg, gravity=lift, table_z=tz if lift else None)
+        out[p] = physics_scene.build(spec, mesh, parts, cfg, gravity=lift, table_z=tz if lift else None,
+                                     hold=not lift)
     return out
 
 
@@ -190,7 +197,8 @@ def closing(batch: Batch, cfg: PhysicsConfig) -> list[Segment]:
         s = (np.arange(i0, i1) + 1.0) / n
         return batch.q_start[:, None] + s[None, :, None] * (batch.q_target - batch.q_start)[:, None], zero
 
-    return [Segment(n, ramp), Segment(_steps(cfg.settle_time, cfg.timestep), lambda i0, i1: (batch.q_target[:, None], zero))]
+    settle = Segment(_steps(cfg.settle_time, cfg.timestep), lambda i0, i1: (batch.q_target[:, None], zero), hold=True)
+    return [Segment(n, ramp, hold=True), settle]
 
 
 def lift_shake(batch: Batch, cfg: PhysicsConfig) -> list[Segment]:
@@ -252,20 +260,28 @@ class CpuSim:
 
     def run(self, state: np.ndarray, batch: Batch, seg: Segment, track: Callable | None = None) -> np.ndarray:
         """Advance `state` (B, nstate) through `seg`; `track(states)` sees each chunk's last states."""
-        m = self.scene.model
+        m, sc = self.scene.model, self.scene
         b = len(state)
-        spec = _CTRL if seg.force is None else _CTRL_FORCE
+        spec = _CTRL
+        if seg.force is not None:
+            spec |= mujoco.mjtState.mjSTATE_XFRC_APPLIED
+        if sc.hold_eq >= 0:
+            spec |= mujoco.mjtState.mjSTATE_EQ_ACTIVE
         for i0 in range(0, seg.n, CHUNK):
             i1 = min(seg.n, i0 + CHUNK)
             ctrl, off = seg.make(i0, i1)
             k = max(ctrl.shape[1], off.shape[0])
-            parts = [np.broadcast_to(ctrl, (b, k, ctrl.shape[2])),
-                     np.broadcast_to(batch.wrist_pos[:, None] + off[None], (b, k, 3)),
-                     np.broadcast_to(batch.wrist_quat[:, None], (b, k, 4))]
+            parts = [np.broadcast_to(ctrl, (b, k, ctrl.shape[2]))]  # in mjtState bit order, as mj_setState reads
             if seg.force is not None:
                 xfrc = np.zeros((b, k, m.nbody, 6))
-                xfrc[:, :, self.scene.obj_body, :3] = seg.force
+                xfrc[:, :, sc.obj_body, :3] = seg.force
                 parts.append(xfrc.reshape(b, k, -1))
+            if sc.hold_eq >= 0:
+                active = np.ones((b, k, m.neq))
+                active[:, :, sc.hold_eq] = float(seg.hold)
+                parts.append(active)
+            parts += [np.broadcast_to(batch.wrist_pos[:, None] + off[None], (b, k, 3)),
+                      np.broadcast_to(batch.wrist_quat[:, None], (b, k, 4))]
             control = np.ascontiguousarray(np.concatenate(parts, axis=2))
             states, _ = rollout.rollout(m, self.datas, state, control, control_spec=spec, nstep=i1 - i0,
                                         persistent_pool=True)
@@ -312,19 +328,16 @@ def _reason(bad_start: np.ndarray, lost: np.ndarray, moved: np.ndarray) -> np.nd
     return np.select([bad_start, lost, moved], [1, 2, 3], 0).astype(np.int8)
 
 
-def run_protocol(sim, batch: Batch, depth: np.ndarray, cfg: PhysicsConfig, protocol: str,
-                 progress: Callable[[int], None] | None = None) -> dict[str, np.ndarray]:
+def run_protocol(sim, batch: Batch, depth: np.ndarray, cfg: PhysicsConfig, protocol: str) -> dict[str, np.ndarray]:
     """Execute and test every grasp of `batch` on `sim` (a `CpuSim` or `physics_mjx.MjxSim` for the protocol's
     scene). Returns per-grasp arrays: success, reason (index into REASONS), move (m), rot (deg) and, for six-dir,
     move_dir / rot_dir (B, 6)."""
     if protocol not in PROTOCOLS:
         raise FfcgsError(f"unknown protocol {protocol!r}; protocols: {', '.join(PROTOCOLS)}")
-    tick = progress or (lambda n: None)
     bad_start = depth > cfg.max_initial_penetration
     state = sim.initial(batch)
     for seg in closing(batch, cfg):
         state = sim.run(state, batch, seg)
-    tick(1)
     ref = sim.probe(state, batch)
     if protocol == "lift-shake":
         for seg in lift_shake(batch, cfg):
@@ -335,20 +348,15 @@ def run_protocol(sim, batch: Batch, depth: np.ndarray, cfg: PhysicsConfig, proto
         rot = _angle(end["quat"], ref["quat"])
         lost = ~end["touch"]
         moved = (move >= cfg.max_slip) | end["table"]
-        tick(1)
         return dict(success=~(bad_start | lost | moved), reason=_reason(bad_start, lost, moved), move=move, rot=rot)
     b = len(depth)
     move_dir, rot_dir = np.zeros((b, 6)), np.zeros((b, 6))
-    touch = ref["touch"].copy()
     for k, direction in enumerate(DIRECTIONS):
         def track(s, k=k):
             p = sim.probe(s, batch)
             move_dir[:, k] = np.maximum(move_dir[:, k], np.linalg.norm(p["pos"] - ref["pos"], axis=1))
             rot_dir[:, k] = np.maximum(rot_dir[:, k], _angle(p["quat"], ref["quat"]))
-            track.last = p["touch"]
         sim.run(state, batch, push(batch, cfg, direction, sim.scene.mass), track)
-        touch &= track.last
-        tick(1)
     move, rot = move_dir.max(axis=1), rot_dir.max(axis=1)
     lost = ~ref["touch"]
     moved = (move >= cfg.max_move) | (rot >= cfg.max_rot_deg)
@@ -356,36 +364,60 @@ def run_protocol(sim, batch: Batch, depth: np.ndarray, cfg: PhysicsConfig, proto
                 move_dir=move_dir, rot_dir=rot_dir)
 
 
-def protocol_steps(protocol: str) -> int:
-    """Progress ticks `run_protocol` makes."""
-    return 2 if protocol == "lift-shake" else 1 + len(DIRECTIONS)
-
-
 def evaluate(spec: HandSpec, mesh: trimesh.Trimesh, wrist_pose, q, cfg: PhysicsConfig = PhysicsConfig(),
              protocols=PROTOCOLS, backend: str = "cpu", table_z: float | None = None,
              progress: Callable[[int], None] | None = None) -> dict[str, np.ndarray]:
     """Run the physics test on grasps (wrist_pose (B, 4, 4) object frame, q (B, Q) channels).
 
-    Returns flat per-grasp arrays for an npz: initial_penetration, palm_contact and, per protocol p (with '-'
-    written '_'), p_success, p_reason, p_move, p_rot (and six_dir_move_dir, six_dir_rot_dir)."""
+    CPU runs the grasps in groups of `GROUP_PER_THREAD` x threads, so `progress(k)` (k grasps done) ticks often;
+    MJX runs them as one batch. Returns flat per-grasp arrays for an npz: initial_penetration, palm_contact and,
+    per protocol p (with '-' written '_'), p_success, p_reason (index into REASONS), p_move (m), p_rot (degrees)
+    and for six-dir six_dir_move_dir, six_dir_rot_dir (B, 6)."""
     cfg.check()
     protocols = tuple(protocols)
     for p in protocols:
         if p not in PROTOCOLS:
             raise FfcgsError(f"unknown protocol {p!r}; protocols: {', '.join(PROTOCOLS)}")
-    if backend not in ("cpu", "mjx"):
-        raise FfcgsError(f"unknown physics backend {backend!r}; backends: cpu, mjx")
+    if backend not in BACKENDS:
+        raise FfcgsError(f"unknown physics backend {backend!r}; backends: {', '.join(BACKENDS)}")
+    if len(np.asarray(q).reshape(-1)) == 0:
+        raise FfcgsError("no grasps to test")
+    tick = progress or (lambda n: None)
     out: dict[str, np.ndarray] = {}
     for p, scene in scenes(spec, mesh, cfg, protocols, table_z).items():
         batch, depth, palm = prepare(scene, mesh, wrist_pose, q, cfg)
         out["initial_penetration"], out["palm_contact"] = depth, palm
         if backend == "cpu":
             sim = CpuSim(scene, cfg.workers)
+            group = GROUP_PER_THREAD * sim.nthread
         else:
             from ffcgs_jax.physics_mjx import MjxSim
 
-            sim = MjxSim(scene)
-        res = run_protocol(sim, batch, depth, cfg, p, progress)
-        for k, v in res.items():
-            out[f"{p.replace('-', '_')}_{k}"] = v
+            sim, group = MjxSim(scene), len(depth)
+        parts = []
+        for i in range(0, len(depth), group):
+            rows = slice(i, i + group)
+            sub = Batch(*(getattr(batch, f.name)[rows] for f in dataclasses.fields(Batch)))
+            parts.append(run_protocol(sim, sub, depth[rows], cfg, p))
+            tick(len(depth[rows]))
+        for k in parts[0]:
+            out[f"{p.replace('-', '_')}_{k}"] = np.concatenate([r[k] for r in parts])
     return out
+
+
+def summary_rows(results: dict[str, np.ndarray], protocols, valid: np.ndarray | None = None
+                 ) -> list[tuple[str, str]]:
+    """Success rates with 95 % Wilson intervals and failure reasons, over all grasps and over `valid` ones."""
+    rows = []
+    for p in protocols:
+        ok = results[f"{p.replace('-', '_')}_success"]
+        reason = results[f"{p.replace('-', '_')}_reason"]
+        groups = [("all", np.ones(len(ok), bool))] + ([("valid", valid)] if valid is not None else [])
+        for name, sel in groups:
+            k, n = int(ok[sel].sum()), int(sel.sum())
+            lo, hi = wilson(k, n)
+            rate = f"{100 * k / n:.1f} %" if n else "-"
+            rows.append((f"{p} success ({name})", f"{k} / {n} = {rate}  (95 % CI {100 * lo:.1f}-{100 * hi:.1f} %)"))
+        counts = ", ".join(f"{r} {int((reason == i).sum())}" for i, r in enumerate(REASONS) if i)
+        rows.append((f"{p} failures", counts))
+    return rows

@@ -41,6 +41,7 @@ class PhysicsScene:
         root_body, root_qpos: the hand's root body id and its (welded) free joint's qpos address.
         obj_geoms, hand_geoms, palm_geoms: geom ids (palm: those of the root body).
         table_geom: the plane's geom id, or -1 when the scene has no table.
+        hold_eq: id of the weld holding the object in place, or -1 when the scene has none.
         tip_sites: site ids of the fingertip contact points.
         lower, upper: (Q,) channel limits.
         mass: the object's mass, kg.
@@ -57,6 +58,7 @@ class PhysicsScene:
     hand_geoms: np.ndarray
     palm_geoms: np.ndarray
     table_geom: int
+    hold_eq: int
     tip_sites: np.ndarray
     lower: np.ndarray
     upper: np.ndarray
@@ -64,9 +66,10 @@ class PhysicsScene:
 
 
 def build(spec: HandSpec, mesh: trimesh.Trimesh, parts: list[tuple[np.ndarray, np.ndarray]],
-          cfg: PhysicsConfig = PhysicsConfig(), *, gravity: bool = True, table_z: float | None = None
-          ) -> PhysicsScene:
-    """Compile the scene. `parts`: convex pieces from `convex.decompose(mesh)`; table_z None = no table."""
+          cfg: PhysicsConfig = PhysicsConfig(), *, gravity: bool = True, table_z: float | None = None,
+          hold: bool = False) -> PhysicsScene:
+    """Compile the scene. `parts`: convex pieces from `convex.decompose(mesh)`; table_z None = no table;
+    hold: add a weld of the object to the world (`hold_eq`) that the protocol switches on and off."""
     s = mujoco.MjSpec.from_file(spec.mjcf_path)
     s.option.timestep = cfg.timestep
     s.option.cone = mujoco.mjtCone.mjCONE_ELLIPTIC if cfg.cone == "elliptic" else mujoco.mjtCone.mjCONE_PYRAMIDAL
@@ -105,6 +108,9 @@ def build(spec: HandSpec, mesh: trimesh.Trimesh, parts: list[tuple[np.ndarray, n
         g.name, g.type, g.meshname = f"object_{i}", mujoco.mjtGeom.mjGEOM_MESH, m.name
         g.rgba, g.contype, g.conaffinity = OBJECT_RGBA, 1, 2
         _contact(g, cfg)
+    if hold:
+        eq = s.add_equality()
+        eq.type, eq.objtype, eq.name, eq.name1 = mujoco.mjtEq.mjEQ_WELD, mujoco.mjtObj.mjOBJ_BODY, "hold", "object"
     if table_z is not None:
         g = s.worldbody.add_geom()
         g.name, g.type, g.size, g.pos = "table", mujoco.mjtGeom.mjGEOM_PLANE, [0, 0, 0.01], [0, 0, table_z]
@@ -134,6 +140,7 @@ def build(spec: HandSpec, mesh: trimesh.Trimesh, parts: list[tuple[np.ndarray, n
         hand_geoms=np.flatnonzero(np.isin(geom_body, hand_bodies)),
         palm_geoms=np.flatnonzero(geom_body == root_id),
         table_geom=-1 if table_z is None else mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_GEOM, "table"),
+        hold_eq=mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_EQUALITY, "hold") if hold else -1,
         tip_sites=ids(mujoco.mjtObj.mjOBJ_SITE, spec.contact_sites),
         lower=np.asarray(spec.lower, np.float64),
         upper=np.asarray(spec.upper, np.float64),

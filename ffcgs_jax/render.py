@@ -18,6 +18,9 @@ Views (world z up; MuJoCo free-camera azimuth/elevation in degrees, the camera l
 
 Every view is a perspective camera with the model's `vis.global_.fovy`, aimed at the centre of the
 bounding box of all non-plane geoms and pulled back until all of their vertices fit with a margin.
+
+For animations (`physics_video`), `fit_cameras` fits the cameras once and `SceneRenderer` draws every frame with
+them, keeping one GL context open.
 """
 
 import contextlib
@@ -26,6 +29,7 @@ import functools
 import importlib
 import os
 from pathlib import Path
+from typing import Self
 
 import mujoco
 import numpy as np
@@ -74,36 +78,110 @@ def render_scene(
     Returns:
         The image, (height, width * len(views), 3) uint8, and the backend used: "mujoco" or "software".
     """
-    if backend not in BACKENDS:
-        raise FfcgsError(f"unknown render backend {backend!r}; valid backends: {', '.join(BACKENDS)}")
+    _check_backend(backend)
+    cameras = fit_cameras(model, data, width, height, views)
+    with SceneRenderer(model, cameras, backend) as renderer:
+        images = renderer.render(data)
+        used = renderer.used
+    labelled = [_label(img, name) for img, name in zip(images, views)]
+    return np.concatenate(labelled, axis=1), used
+
+
+def fit_cameras(
+    model: mujoco.MjModel,
+    data: mujoco.MjData,
+    width: int = 480,
+    height: int = 480,
+    views: tuple[str, ...] = ("front", "side", "top"),
+    points: Float[np.ndarray, "n 3"] | None = None,
+) -> list[Camera]:
+    """The cameras `render_scene` uses, fitted once: to keep them fixed over the frames of a moving scene.
+
+    Args:
+        model, data: the scene, kinematics computed; its visible non-plane geoms are fitted.
+        width, height: size of one view in pixels.
+        views: names from `VIEWS`.
+        points: extra world points (n, 3) to keep in frame too (where the scene will move to).
+
+    Returns:
+        One camera per view.
+    """
+    unknown = [v for v in views if v not in VIEWS]
     if not views:
         raise FfcgsError(f"views must name at least one view; valid views: {', '.join(VIEWS)}")
-    unknown = [v for v in views if v not in VIEWS]
     if unknown:
         raise FfcgsError(f"unknown view(s) {', '.join(map(repr, unknown))}; valid views: {', '.join(VIEWS)}")
     for name, value in (("width", width), ("height", height)):
         if not isinstance(value, (int, np.integer)) or not 16 <= value <= 4096:
             raise FfcgsError(f"render {name} must be in [16, 4096] pixels, got {value}")
     _check_data(model, data)
-
     tagged = _geom_meshes(model, data, include_planes=True)
-    meshes = [mesh for _, mesh in tagged]
     solid = [v for g, (v, _, _) in tagged if model.geom_type[g] != _PLANE]
-    points = np.concatenate(solid or [v for v, _, _ in meshes] or [np.zeros((1, 3))])
+    fit = solid or [v for _, (v, _, _) in tagged] or [np.zeros((1, 3))]
+    if points is not None:
+        fit = fit + [np.asarray(points, np.float64).reshape(-1, 3)]
+    fit_points = np.concatenate(fit)
     fovy = float(model.vis.global_.fovy)
-    cameras = [_fit_camera(points, *VIEWS[v], fovy, width, height) for v in views]
+    return [_fit_camera(fit_points, *VIEWS[v], fovy, int(width), int(height)) for v in views]
 
-    images, used = None, "software"
-    if backend in ("auto", "mujoco"):
-        try:
-            images, used = _render_gl(model, data, cameras), "mujoco"
-        except FfcgsError:
-            if backend == "mujoco":
-                raise
-    if images is None:
-        images = [draw(meshes, cam) for cam in cameras]
-    labelled = [_label(img, name) for img, name in zip(images, views)]
-    return np.concatenate(labelled, axis=1), used
+
+class SceneRenderer:
+    """Draws frames of one model from fixed cameras (`fit_cameras`), for animations; a context manager.
+
+    The MuJoCo backend keeps its GL and render contexts for all frames (`render_scene` makes them per call,
+    several times the cost of a frame). With "auto", any GL failure switches to the software rasteriser;
+    `used` says which backend drew the last frame. Planes are drawn (software) around `around` (world points,
+    (n, 3)) when given, so that they stay put while the scene moves, else around the current geoms.
+    """
+
+    def __init__(self, model: mujoco.MjModel, cameras: list[Camera], backend: str = "auto",
+                 around: Float[np.ndarray, "n 3"] | None = None):
+        _check_backend(backend)
+        if not cameras or len({(c.width, c.height) for c in cameras}) != 1:
+            raise FfcgsError("SceneRenderer needs at least one camera, all of the same size")
+        self.model, self.cameras, self.backend = model, list(cameras), backend
+        self.around = None if around is None else np.asarray(around, np.float64).reshape(-1, 3)
+        self.used = "software"
+        self._gl: _GlSession | None = None
+        if backend in ("auto", "mujoco"):
+            try:
+                with _gl_errors():
+                    self._gl = _GlSession(model, self.cameras)
+                self.used = "mujoco"
+            except FfcgsError:
+                if backend == "mujoco":
+                    raise
+
+    def render(self, data: mujoco.MjData) -> list[UInt8[np.ndarray, "height width 3"]]:
+        """One (height, width, 3) uint8 image per camera of `data` (kinematics computed), unlabelled."""
+        _check_data(self.model, data)
+        if self._gl is not None:
+            try:
+                with _gl_errors():
+                    return self._gl.draw(data)
+            except FfcgsError:
+                if self.backend == "mujoco":
+                    raise
+                self.close()
+                self.used = "software"
+        meshes = [mesh for _, mesh in _geom_meshes(self.model, data, include_planes=True, around=self.around)]
+        return [draw(meshes, cam) for cam in self.cameras]
+
+    def close(self) -> None:
+        if self._gl is not None:
+            self._gl.close()
+            self._gl = None
+
+    def __enter__(self) -> Self:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+
+def _check_backend(backend: str) -> None:
+    if backend not in BACKENDS:
+        raise FfcgsError(f"unknown render backend {backend!r}; valid backends: {', '.join(BACKENDS)}")
 
 
 def save_png(image: UInt8[np.ndarray, "height width 3"], path: str | Path) -> None:
@@ -149,9 +227,9 @@ def geom_meshes(
 
 
 def _geom_meshes(
-    model: mujoco.MjModel, data: mujoco.MjData, include_planes: bool
+    model: mujoco.MjModel, data: mujoco.MjData, include_planes: bool, around: np.ndarray | None = None
 ) -> list[tuple[int, tuple[np.ndarray, np.ndarray, np.ndarray]]]:
-    """`geom_meshes`, each tagged with its geom index."""
+    """`geom_meshes`, each tagged with its geom index; planes around the points `around` when given."""
     chosen = _visible_geoms(model)
     planes = model.geom_type == _PLANE
     out: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
@@ -164,7 +242,7 @@ def _geom_meshes(
         world = local @ data.geom_xmat[g].reshape(3, 3).T + data.geom_xpos[g]
         out[g] = (world, np.array(faces), _geom_rgba(model, g))  # a writable copy of the cached faces
     if include_planes:
-        solids = [v for v, _, _ in out.values()]
+        solids = [v for v, _, _ in out.values()] if around is None else [around]
         for g in chosen:
             if planes[g]:
                 mesh = _plane_mesh(model, data, g, np.concatenate(solids) if solids else None)
@@ -360,10 +438,11 @@ def _add_fill_light(scene: mujoco.MjvScene, cam: Camera) -> None:
     scene.nlight += 1
 
 
-def _render_gl(model: mujoco.MjModel, data: mujoco.MjData, cameras: list[Camera]) -> list[np.ndarray]:
-    """Offscreen MuJoCo rendering of each camera; any failure becomes an FfcgsError naming the GL platform."""
+@contextlib.contextmanager
+def _gl_errors():
+    """Any GL failure inside becomes an FfcgsError naming the GL platform."""
     try:
-        return _render_gl_unchecked(model, data, cameras)
+        yield
     except FfcgsError:
         raise
     except Exception as e:  # noqa: BLE001 -- GL failures surface as RuntimeError, FatalError, OpenGL errors
@@ -371,48 +450,60 @@ def _render_gl(model: mujoco.MjModel, data: mujoco.MjData, cameras: list[Camera]
         raise FfcgsError(_gl_message([f"{name}: {type(e).__name__}: {e}"])) from None
 
 
-def _render_gl_unchecked(model: mujoco.MjModel, data: mujoco.MjData, cameras: list[Camera]) -> list[np.ndarray]:
-    if _MJR_FAILURE:
-        raise FfcgsError(_gl_message(_MJR_FAILURE + ["not retried: a second MjrContext after a failed one aborts"]))
-    W, H = cameras[0].width, cameras[0].height
-    platform, context_cls = _gl_context_class()
-    # A private copy, so the caller's model keeps its offscreen buffer size, clip planes and headlight.
-    m = copy.copy(model)
-    m.vis.global_.offwidth = max(m.vis.global_.offwidth, W)
-    m.vis.global_.offheight = max(m.vis.global_.offheight, H)
-    extent = max(float(m.stat.extent), 1e-6)
-    m.vis.map.znear = 0.02 * min(c.distance for c in cameras) / extent
-    m.vis.map.zfar = 20 * max(c.distance for c in cameras) / extent
-    if m.nlight == 0:  # MuJoCo's default headlight alone leaves light-less models dim
-        m.vis.headlight.ambient[:] = AMBIENT
-        m.vis.headlight.diffuse[:] = HEADLIGHT
-        m.vis.headlight.specular[:] = 0.2
-    option = mujoco.MjvOption()
-    if any(model.geom_group[g] >= _DEFAULT_GROUPS for g in _visible_geoms(model)):
-        option.geomgroup[:] = 1  # same fallback as geom_meshes: show every group
+class _GlSession:
+    """An offscreen GL context and MuJoCo render context for drawing `cameras` (all one size) of a model."""
 
-    gl, ctx = None, None
-    try:
-        gl = context_cls(W, H)
-        gl.make_current()  # EGL and OSMesa raise here when they fail
-        if platform not in ("egl", "osmesa") and not importlib.import_module("glfw").get_current_context():
-            raise FfcgsError(_gl_message([f"{platform}: GLFW could not open a window (no display?)"]))
+    def __init__(self, model: mujoco.MjModel, cameras: list[Camera]):
+        if _MJR_FAILURE:
+            raise FfcgsError(_gl_message(_MJR_FAILURE + ["not retried: a second MjrContext after a failed one aborts"]))
+        self.cameras = cameras
+        W, H = cameras[0].width, cameras[0].height
+        platform, context_cls = _gl_context_class()
+        # A private copy, so the caller's model keeps its offscreen buffer size, clip planes and headlight.
+        m = copy.copy(model)
+        m.vis.global_.offwidth = max(m.vis.global_.offwidth, W)
+        m.vis.global_.offheight = max(m.vis.global_.offheight, H)
+        extent = max(float(m.stat.extent), 1e-6)
+        m.vis.map.znear = 0.02 * min(c.distance for c in cameras) / extent
+        m.vis.map.zfar = 20 * max(c.distance for c in cameras) / extent
+        if m.nlight == 0:  # MuJoCo's default headlight alone leaves light-less models dim
+            m.vis.headlight.ambient[:] = AMBIENT
+            m.vis.headlight.diffuse[:] = HEADLIGHT
+            m.vis.headlight.specular[:] = 0.2
+        self.model = m
+        self.option = mujoco.MjvOption()
+        if any(model.geom_group[g] >= _DEFAULT_GROUPS for g in _visible_geoms(model)):
+            self.option.geomgroup[:] = 1  # same fallback as geom_meshes: show every group
+        self.gl, self.ctx = None, None
         try:
-            ctx = mujoco.MjrContext(m, mujoco.mjtFontScale.mjFONTSCALE_100.value)
-        except Exception as e:  # noqa: BLE001 -- MuJoCo's FatalError
-            _MJR_FAILURE.append(f"{platform}: {type(e).__name__}: {e}")
+            self.gl = context_cls(W, H)
+            self.gl.make_current()  # EGL and OSMesa raise here when they fail
+            if platform not in ("egl", "osmesa") and not importlib.import_module("glfw").get_current_context():
+                raise FfcgsError(_gl_message([f"{platform}: GLFW could not open a window (no display?)"]))
+            try:
+                self.ctx = mujoco.MjrContext(m, mujoco.mjtFontScale.mjFONTSCALE_100.value)
+            except Exception as e:  # noqa: BLE001 -- MuJoCo's FatalError
+                _MJR_FAILURE.append(f"{platform}: {type(e).__name__}: {e}")
+                raise
+            mujoco.mjr_setBuffer(mujoco.mjtFramebuffer.mjFB_OFFSCREEN.value, self.ctx)
+            self.ctx.readDepthMap = mujoco.mjtDepthMap.mjDEPTH_ZEROFAR
+            self.scene = mujoco.MjvScene(m, maxgeom=max(1000, 2 * m.ngeom))
+        except BaseException:
+            self.close()
             raise
-        mujoco.mjr_setBuffer(mujoco.mjtFramebuffer.mjFB_OFFSCREEN.value, ctx)
-        ctx.readDepthMap = mujoco.mjtDepthMap.mjDEPTH_ZEROFAR
-        scene = mujoco.MjvScene(m, maxgeom=max(1000, 2 * m.ngeom))
+
+    def draw(self, data: mujoco.MjData) -> list[np.ndarray]:
+        m, scene, ctx = self.model, self.scene, self.ctx
+        W, H = self.cameras[0].width, self.cameras[0].height
+        self.gl.make_current()
         rect = mujoco.MjrRect(0, 0, W, H)
         images = []
-        for cam in cameras:
+        for cam in self.cameras:
             mjcam = mujoco.MjvCamera()
             mjcam.type = mujoco.mjtCamera.mjCAMERA_FREE
             mjcam.lookat[:] = cam.lookat
             mjcam.distance, mjcam.azimuth, mjcam.elevation = cam.distance, cam.azimuth, cam.elevation
-            mujoco.mjv_updateScene(m, data, option, None, mjcam, mujoco.mjtCatBit.mjCAT_ALL.value, scene)
+            mujoco.mjv_updateScene(m, data, self.option, None, mjcam, mujoco.mjtCatBit.mjCAT_ALL.value, scene)
             if m.nlight == 0 and scene.nlight < len(scene.lights):
                 _add_fill_light(scene, cam)
             mujoco.mjr_render(rect, scene, ctx)
@@ -422,11 +513,15 @@ def _render_gl_unchecked(model: mujoco.MjModel, data: mujoco.MjData, cameras: li
             rgb, depth = rgb[::-1], depth[::-1]  # OpenGL rows run bottom to top
             images.append(np.where((depth > 0)[..., None], rgb, background(W, H)))  # far plane reads 0
         return images
-    finally:  # cleanup after a failure must not mask it
-        if ctx is not None:
+
+    def close(self) -> None:
+        """Free the contexts; cleanup after a failure must not mask it."""
+        if self.ctx is not None:
             with contextlib.suppress(Exception):
-                gl.make_current()
-                ctx.free()
-        if gl is not None:
+                self.gl.make_current()
+                self.ctx.free()
+            self.ctx = None
+        if self.gl is not None:
             with contextlib.suppress(Exception):
-                gl.free()
+                self.gl.free()
+            self.gl = None

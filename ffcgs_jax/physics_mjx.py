@@ -1,0 +1,136 @@
+"""The physics test on MuJoCo MJX: `MjxSim`, the `physics.CpuSim` interface on a batched `mjx.Data`.
+
+The grasps of a batch are one vmapped `mjx.Data`; each `physics.CHUNK` of steps is one jitted loop, fed the
+chunk's servo targets and wrist (mocap) positions as arrays.
+
+What MJX (mujoco-mjx 3.17, JAX implementation) supports of the scene `physics_scene.build` makes, checked on the
+SVH hand with the built-in ball and box:
+- collisions: every pair the scene collides has an MJX function: hand capsules and boxes against the object's
+  convex mesh parts (capsule-mesh, box-mesh: GJK/EPA), and the hand and the object against the table plane.
+  MJX refuses margin or gap on mesh geoms (the scene sets neither).
+- elliptic (and pyramidal) cones, impratio, the Newton solver, the implicitfast integrator (without fluid drag),
+  weld and joint equality constraints (the wrist weld, the MJCF's finger couplings, the six-dir hold switched
+  through `eq_active`), gravcomp, mocap bodies, xfrc_applied: all supported.
+- not supported: the no-slip solver (MJX ignores `noslip_iterations` silently, so `MjxSim` refuses it), the PGS
+  solver, flex and fluid drag with implicitfast (`mjx.put_model` raises; `MjxSim` turns that into FfcgsError).
+
+How it differs from CPU MuJoCo: MJX has its own collision code (a fixed number of contact slots per geom pair,
+its own convex-convex routine), so trajectories agree with `CpuSim` loosely, not to round-off; it runs in JAX's
+default precision (float32 unless jax_enable_x64 is set). Compiling is slow: on a 2-core CPU one step function
+of the SVH + ball scene takes about 50 s to compile and the contact probe about 20 s, so each `MjxSim` compiles
+its step loop once (per batch size) for every chunk length, rather than once per length.
+"""
+
+import jax
+import jax.numpy as jnp
+import mujoco
+import numpy as np
+
+from ffcgs_jax import physics
+from ffcgs_jax._mjx import mjx
+from ffcgs_jax.errors import FfcgsError
+from ffcgs_jax.physics import Batch, Segment
+from ffcgs_jax.physics_scene import PhysicsScene
+
+
+def put_model(model: mujoco.MjModel) -> mjx.Model:
+    """The MJX model of a physics scene, or FfcgsError naming what MJX cannot run."""
+    if model.opt.noslip_iterations > 0:
+        raise FfcgsError("MJX has no no-slip solver (noslip_iterations > 0); use the cpu physics backend")
+    try:
+        # impl="jax": the Warp implementation, picked by default where installed, is a different simulator
+        return mjx.put_model(model, impl="jax")
+    except NotImplementedError as e:
+        raise FfcgsError(f"MJX cannot run this physics scene: {e}; use the cpu physics backend") from None
+
+
+def _chunk(m: mjx.Model, d: mjx.Data, ctrl: jax.Array, mocap_pos: jax.Array, n: jax.Array) -> mjx.Data:
+    """`n` steps of one grasp; ctrl (CHUNK, Q) and mocap_pos (CHUNK, 3) padded past n."""
+
+    def step(i, d):
+        return mjx.step(m, d.replace(ctrl=ctrl[i], mocap_pos=mocap_pos[i][None]))
+
+    # a traced trip count over fixed-size buffers: every chunk length shares one compiled loop
+    return jax.lax.fori_loop(0, n, step, d)
+
+
+def _probe(m: mjx.Model, d: mjx.Data, mocap_pos: jax.Array, obj_body: int, root_body: int, obj: jax.Array,
+           hand: jax.Array, table: jax.Array) -> dict[str, jax.Array]:
+    # positions and contacts need only kinematics and collision, not the solver (a much smaller program)
+    d = mjx.collision(m, mjx.kinematics(m, d.replace(mocap_pos=mocap_pos[None])))
+    c = d._impl.contact
+    g1, g2 = c.geom[:, 0], c.geom[:, 1]
+    on = c.dist < 0  # MJX keeps a slot for every candidate pair; only penetrating ones are contacts
+
+    def pair(a, b):
+        return jnp.any(on & ((a[g1] & b[g2]) | (a[g2] & b[g1])))
+
+    pos = d.xpos[obj_body]
+    rel = d.xmat[root_body].T @ (pos - d.xpos[root_body])
+    return dict(pos=pos, quat=d.xquat[obj_body], rel=rel, table=pair(obj, table), touch=pair(obj, hand))
+
+
+class MjxSim:
+    """Runs segments for a batch on MuJoCo MJX. States are batched `mjx.Data` (leading axis: grasps)."""
+
+    def __init__(self, scene: PhysicsScene):
+        self.scene = scene
+        self.model = put_model(scene.model)
+        self._data0 = mjx.make_data(self.model)
+        self._dtype = self._data0.qpos.dtype
+        ng = scene.model.ngeom
+        masks = [np.isin(np.arange(ng), ids) for ids in (scene.obj_geoms, scene.hand_geoms, [scene.table_geom])]
+        self._masks = [jnp.asarray(mk) for mk in masks]
+        self._run = jax.jit(jax.vmap(_chunk, in_axes=(None, 0, 0, 0, None)))
+        probe = jax.vmap(_probe, in_axes=(None, 0, 0, None, None, None, None, None))
+        self._probe = jax.jit(probe, static_argnums=(3, 4))
+
+    def _call(self, fn, *args):
+        # MJX broadcasts across ranks internally; a caller's jax_numpy_rank_promotion="raise" must not apply
+        with jax.numpy_rank_promotion("allow"):
+            return fn(*args)
+
+    def initial(self, batch: Batch) -> mjx.Data:
+        sc = self.scene
+        d = mujoco.MjData(sc.model)
+        b = len(batch.q_start)
+        qpos = np.zeros((b, sc.model.nq))
+        for g in range(b):
+            physics._pose_hand(sc, d, batch.wrist_pos[g], batch.wrist_quat[g], batch.q_start[g])
+            qpos[g] = d.qpos
+        data = jax.tree_util.tree_map(lambda x: jnp.broadcast_to(x, (b, *x.shape)), self._data0)
+        return data.replace(qpos=jnp.asarray(qpos, self._dtype),
+                            mocap_pos=jnp.asarray(batch.wrist_pos[:, None], self._dtype),
+                            mocap_quat=jnp.asarray(batch.wrist_quat[:, None], self._dtype))
+
+    def run(self, state: mjx.Data, batch: Batch, seg: Segment, track=None) -> mjx.Data:
+        """Advance `state` through `seg`; `track(state)` sees the state after each chunk."""
+        sc, m = self.scene, self.scene.model
+        b = len(batch.q_start)
+        xfrc = np.zeros((b, m.nbody, 6))
+        if seg.force is not None:
+            xfrc[:, sc.obj_body, :3] = seg.force
+        active = np.ones((b, m.neq), bool)
+        if sc.hold_eq >= 0:
+            active[:, sc.hold_eq] = seg.hold
+        state = state.replace(xfrc_applied=jnp.asarray(xfrc, self._dtype), eq_active=jnp.asarray(active))
+        ctrl = np.zeros((b, physics.CHUNK, m.nu))
+        mocap = np.zeros((b, physics.CHUNK, 3))
+        for i0 in range(0, seg.n, physics.CHUNK):
+            i1 = min(seg.n, i0 + physics.CHUNK)
+            c, off = seg.make(i0, i1)
+            ctrl[:, : i1 - i0] = c
+            mocap[:, : i1 - i0] = batch.wrist_pos[:, None] + off[None]
+            state = self._call(self._run, self.model, state, jnp.asarray(ctrl, self._dtype),
+                               jnp.asarray(mocap, self._dtype), i1 - i0)
+            if track is not None:
+                track(state)
+        return state
+
+    def probe(self, state: mjx.Data, batch: Batch, offset=(0.0, 0.0, 0.0)) -> dict[str, np.ndarray]:
+        """Object pose (world, and position in the hand's root frame), table and hand contact of each state, with
+        the wrist target moved by `offset` (3,)."""
+        mocap = jnp.asarray(batch.wrist_pos + np.asarray(offset), self._dtype)
+        out = self._call(self._probe, self.model, state, mocap, self.scene.obj_body, self.scene.root_body,
+                         *self._masks)
+        return {k: np.asarray(v, bool if k in ("table", "touch") else np.float64) for k, v in out.items()}
