@@ -1,6 +1,7 @@
 """Grasp quality per sampler and method, on the built-in objects and the YCB test split (Table I / II style).
 
     python bench/eval_grasp.py [--ycb ../shared/objects/ycb] [--n 32] [--methods ours,paper] [--samplers geometric,random]
+        [--save DIR]   # keep the grasps for bench/eval_physics.py
 
 For every object, sampler and method (ours = the package defaults; paper = configs/paper.toml, Algorithm 1 as
 published) it synthesises n grasps and reports: share of valid grasps, share of valid grasps with epsilon > 0 (force
@@ -18,7 +19,7 @@ import numpy as np
 from tqdm import tqdm
 
 from ffcgs_jax import kinematics as K
-from ffcgs_jax import mesh_io, metrics, objects
+from ffcgs_jax import grasp_io, mesh_io, metrics, objects
 from ffcgs_jax.config import EnergyConfig, OptimConfig
 from ffcgs_jax.grasp import GraspConfig, synthesize
 
@@ -29,17 +30,19 @@ METHODS = {
 }
 
 
-def object_list(ycb: Path) -> list[tuple[str, str]]:
+def object_list(ycb: Path, every_file: bool = False) -> list[tuple[str, str]]:
+    """The built-in objects, then the YCB test split (sorted index % 5 == 4), or every file of a folder that holds
+    only the test split (`--every-file`, e.g. a copy of it on a machine without ../shared)."""
     out = [(name, name) for name in objects.names()]
     files = sorted(ycb.glob("*.stl")) if ycb.is_dir() else []
-    out += [(f.stem, str(f)) for i, f in enumerate(files) if i % 5 == 4]
+    out += [(f.stem, str(f)) for i, f in enumerate(files) if every_file or i % 5 == 4]
     return out
 
 
 def run(args) -> list[dict]:
     hand = K.load_hand("svh")
     rows = []
-    objs = object_list(Path(args.ycb))
+    objs = object_list(Path(args.ycb), args.every_file)
     jobs = [(o, m, s) for o in objs for m in args.methods.split(",") for s in args.samplers.split(",")]
     meshes = {}
     for (name, src), method, sampler in tqdm(jobs, desc="grasps", unit="run"):
@@ -48,6 +51,9 @@ def run(args) -> list[dict]:
         energy, optim = METHODS[method]
         cfg = GraspConfig(n=args.n, sampler=sampler, seed=args.seed, energy=energy, optim=optim)
         gs = synthesize(hand, meshes[name], cfg, name)
+        if args.save:  # the grasps themselves, for bench/eval_physics.py
+            Path(args.save).mkdir(parents=True, exist_ok=True)
+            grasp_io.save_npz(gs, Path(args.save) / f"{name}__{method}__{sampler}.npz")
         a, v = gs.arrays, gs["valid"]
         med = lambda k, s=1.0: float(np.median(a[k][v]) * s) if v.any() else float("nan")  # noqa: E731
         rows.append({
@@ -103,6 +109,8 @@ def main():
     ap.add_argument("--methods", default="ours,paper")
     ap.add_argument("--samplers", default="geometric,random")
     ap.add_argument("--json", help="also write the rows to this JSON file")
+    ap.add_argument("--every-file", action="store_true", help="--ycb holds only the test split: take every file")
+    ap.add_argument("--save", help="also write each run's grasps to DIR/OBJECT__METHOD__SAMPLER.npz")
     args = ap.parse_args()
     t0 = time.perf_counter()
     rows = run(args)

@@ -338,7 +338,8 @@ def run_eval(cmd: EvalCmd) -> None:
         scene = physics.scenes(spec, mesh, cmd.physics, protocols[:1])[protocols[0]]
         batch, _, _ = physics.prepare(scene, mesh, data["wrist_pose"][pick:pick + 1], data["q"][pick:pick + 1],
                                       cmd.physics)
-        frames = physics_video.record(scene, batch, 0, cmd.physics, protocols[0], cmd.video)
+        frames = physics_video.record(scene, batch, 0, cmd.physics, protocols[0], cmd.video,
+                                      title=f"{protocols[0]}  grasp {pick}")
         print(f"wrote {cmd.video} (grasp {pick}, {protocols[0]}, {frames} frames)")
 
 

@@ -153,7 +153,7 @@ def _finish(hand, mesh, target, cfg, out: DeviceOut, synthesis_s, compile_s, obj
     m = hand.spec.mj_model()
     joint_names = np.array([mujoco.mj_id2name(m, mujoco.mjtObj.mjOBJ_JOINT, j) for j in range(m.njnt)])
     arrays = {
-        "wrist_pose": np.asarray(out.poses, np.float64),
+        "wrist_pose": K.orthonormalize(np.asarray(out.poses, np.float64)),
         "q": q,
         "channel_names": np.array(hand.spec.channel_names),
         "joint_pos": q @ np.asarray(hand.coupling, np.float64).T,

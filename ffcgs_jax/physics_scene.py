@@ -104,6 +104,7 @@ def build(spec: HandSpec, mesh: trimesh.Trimesh, parts: list[tuple[np.ndarray, n
         m.name = f"object_{i}"
         m.uservert = np.asarray(v, np.float32).ravel()
         m.userface = np.asarray(f, np.int32).ravel()
+        m.inertia = mujoco.mjtMeshInertia.mjMESH_INERTIA_SHELL  # the body's inertia is explicit; thin parts are fine
         g = body.add_geom()
         g.name, g.type, g.meshname = f"object_{i}", mujoco.mjtGeom.mjGEOM_MESH, m.name
         g.rgba, g.contype, g.conaffinity = OBJECT_RGBA, 1, 2

@@ -52,19 +52,19 @@ def phases(scene: PhysicsScene, batch: physics.Batch, cfg: PhysicsConfig, protoc
     return out
 
 
-def frame_count(scene: PhysicsScene, batch: physics.Batch, cfg: PhysicsConfig, protocol: str, fps: float,
-                max_seconds: float | None = None) -> int:
+def frame_count(scene: PhysicsScene, batch: physics.Batch, cfg: PhysicsConfig, protocol: str, fps: float | int,
+                max_seconds: float | int | None = None) -> int:
     """How many frames `record` writes (the first, at time 0, included), e.g. for a progress bar's total."""
     steps = sum(seg.n for _, seg, _ in phases(scene, batch, cfg, protocol))
     if max_seconds is not None:
         steps = min(steps, _step_limit(max_seconds, cfg.timestep))
-    return 1 + _due(steps, cfg.timestep, fps)
+    return 1 + _due(steps, cfg.timestep, float(fps))
 
 
 def record(scene: PhysicsScene, batch: physics.Batch, index: int, cfg: PhysicsConfig, protocol: str,
-           path: str | Path, fps: float | None = None, width: int | None = None, height: int | None = None,
-           backend: str = "auto", progress: Callable[[int], None] | None = None, max_seconds: float | None = None,
-           view: str = "front", title: str | None = None) -> int:
+           path: str | Path, fps: float | int | None = None, width: int | None = None, height: int | None = None,
+           backend: str = "auto", progress: Callable[[int], None] | None = None,
+           max_seconds: float | int | None = None, view: str = "front", title: str | None = None) -> int:
     """Replay grasp `index` of `batch` (from `physics.prepare` on `scene`) through `protocol` and write a video.
 
     Args:
@@ -101,6 +101,7 @@ def record(scene: PhysicsScene, batch: physics.Batch, index: int, cfg: PhysicsCo
     top = 1.0 / cfg.timestep  # at most a frame a step
     if not (isinstance(fps, (int, float, np.integer, np.floating)) and math.isfinite(fps) and 0 < fps <= top):
         raise FfcgsError(f"fps must be in (0, {top:g}] (one frame per physics step at most), got {fps}")
+    fps = float(fps)
     if max_seconds is not None and not (math.isfinite(max_seconds) and max_seconds >= 0):
         raise FfcgsError(f"max_seconds must be >= 0 seconds or None, got {max_seconds}")
     if backend not in render.BACKENDS:

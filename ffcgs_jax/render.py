@@ -29,7 +29,6 @@ import functools
 import importlib
 import os
 from pathlib import Path
-from typing import Self
 
 import mujoco
 import numpy as np
@@ -172,7 +171,7 @@ class SceneRenderer:
             self._gl.close()
             self._gl = None
 
-    def __enter__(self) -> Self:
+    def __enter__(self) -> "SceneRenderer":
         return self
 
     def __exit__(self, *exc) -> None:

@@ -304,3 +304,15 @@ def test_simulated_actuators_and_equalities_reproduce_the_coupling(svh, frac):
     for _ in range(3000):  # 6 s of simulated time
         mujoco.mj_step(m, d)
     np.testing.assert_allclose(d.qpos, np.asarray(svh.coupling) @ ctrl, atol=1e-6)
+
+
+def test_check_wrist_poses_projects_float32_drift_and_refuses_real_errors():
+    P = random_poses(np.random.default_rng(1), 4)
+    drift = P.copy()
+    drift[:, :3, :3] += 1.5e-4 * np.random.default_rng(2).standard_normal((4, 3, 3))  # float32 descent-like drift
+    out = K.check_wrist_poses(drift)
+    R = out[:, :3, :3]
+    np.testing.assert_allclose(R @ np.swapaxes(R, 1, 2), np.broadcast_to(np.eye(3), (4, 3, 3)), atol=1e-12)
+    assert np.abs(out - P).max() < 3e-3 and np.allclose(np.linalg.det(R), 1.0)
+    with pytest.raises(FfcgsError, match="rigid transforms"):
+        K.check_wrist_poses(P @ np.diag([1.01, 1.0, 1.0, 1.0]))
