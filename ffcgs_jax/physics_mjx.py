@@ -3,22 +3,26 @@
 The grasps of a batch are one vmapped `mjx.Data`; each `physics.CHUNK` of steps is one jitted loop, fed the
 chunk's servo targets and wrist (mocap) positions as arrays.
 
-What MJX (mujoco-mjx 3.17, JAX implementation) supports of the scene `physics_scene.build` makes, checked on the
-SVH hand with the built-in ball and box:
+What MJX (mujoco-mjx 3.17, its JAX implementation) supports of the scene `physics_scene.build` makes, checked on
+the SVH hand with the built-in ball, box and mug:
 - collisions: every pair the scene collides has an MJX function: hand capsules and boxes against the object's
-  convex mesh parts (capsule-mesh, box-mesh: GJK/EPA), and the hand and the object against the table plane.
-  MJX refuses margin or gap on mesh geoms (the scene sets neither).
+  convex mesh parts (separating-axis tests over the hull's faces and edges), and the hand and the object against
+  the table plane. MJX refuses margin or gap on mesh geoms (the scene sets neither).
 - elliptic (and pyramidal) cones, impratio, the Newton solver, the implicitfast integrator (without fluid drag),
   weld and joint equality constraints (the wrist weld, the MJCF's finger couplings, the six-dir hold switched
   through `eq_active`), gravcomp, mocap bodies, xfrc_applied: all supported.
 - not supported: the no-slip solver (MJX ignores `noslip_iterations` silently, so `MjxSim` refuses it), the PGS
-  solver, flex and fluid drag with implicitfast (`mjx.put_model` raises; `MjxSim` turns that into FfcgsError).
+  solver, flex, fluid drag with implicitfast (`mjx.put_model` raises; `MjxSim` turns that into FfcgsError).
 
-How it differs from CPU MuJoCo: MJX has its own collision code (a fixed number of contact slots per geom pair,
-its own convex-convex routine), so trajectories agree with `CpuSim` loosely, not to round-off; it runs in JAX's
-default precision (float32 unless jax_enable_x64 is set). Compiling is slow: on a 2-core CPU one step function
-of the SVH + ball scene takes about 50 s to compile and the contact probe about 20 s, so each `MjxSim` compiles
-its step loop once (per batch size) for every chunk length, rather than once per length.
+How it differs from CPU MuJoCo: MJX has its own collision code (a fixed contact slot count per geom pair, all
+kept in the constraint arrays), so trajectories agree with `CpuSim` loosely, not to round-off (see
+tests/test_physics_mjx.py); it runs in JAX's precision (float32 unless jax_enable_x64 is set).
+
+Cost: MJX compiles one collision routine per (geom type, mesh) pair and keeps a contact slot for every candidate
+pair, so compile time, memory and step time grow with the object's convex parts. On a 2-core CPU: the ball
+(1 part, 160 slots with the table) compiles its step in about 50 s; the mug (22 parts, 1716 slots, 5191
+constraint rows without a table) in about 270 s. Each `MjxSim` therefore compiles its step loop once per batch
+size, shared by all chunk lengths (a traced trip count over fixed-size buffers).
 """
 
 import jax
@@ -50,7 +54,7 @@ def _chunk(m: mjx.Model, d: mjx.Data, ctrl: jax.Array, mocap_pos: jax.Array, n: 
     def step(i, d):
         return mjx.step(m, d.replace(ctrl=ctrl[i], mocap_pos=mocap_pos[i][None]))
 
-    # a traced trip count over fixed-size buffers: every chunk length shares one compiled loop
+    # a traced trip count: every chunk length shares one compiled loop, which takes minutes to compile
     return jax.lax.fori_loop(0, n, step, d)
 
 
@@ -67,7 +71,7 @@ def _probe(m: mjx.Model, d: mjx.Data, mocap_pos: jax.Array, obj_body: int, root_
 
     pos = d.xpos[obj_body]
     rel = d.xmat[root_body].T @ (pos - d.xpos[root_body])
-    return dict(pos=pos, quat=d.xquat[obj_body], rel=rel, table=pair(obj, table), touch=pair(obj, hand))
+    return {"pos": pos, "quat": d.xquat[obj_body], "rel": rel, "table": pair(obj, table), "touch": pair(obj, hand)}
 
 
 class MjxSim:
@@ -76,14 +80,19 @@ class MjxSim:
     def __init__(self, scene: PhysicsScene):
         self.scene = scene
         self.model = put_model(scene.model)
+        self._device = jax.devices()[0]  # where put_model puts the model
         self._data0 = mjx.make_data(self.model)
         self._dtype = self._data0.qpos.dtype
         ng = scene.model.ngeom
         masks = [np.isin(np.arange(ng), ids) for ids in (scene.obj_geoms, scene.hand_geoms, [scene.table_geom])]
-        self._masks = [jnp.asarray(mk) for mk in masks]
+        self._masks = [self._put(mk) for mk in masks]
         self._run = jax.jit(jax.vmap(_chunk, in_axes=(None, 0, 0, 0, None)))
         probe = jax.vmap(_probe, in_axes=(None, 0, 0, None, None, None, None, None))
         self._probe = jax.jit(probe, static_argnums=(3, 4))
+
+    def _put(self, x, dtype=None) -> jax.Array:
+        # committed to the device, as jit outputs are: jit compiles anew when an argument's commitment changes
+        return jax.device_put(np.asarray(x, dtype), self._device)
 
     def _call(self, fn, *args):
         # MJX broadcasts across ranks internally; a caller's jax_numpy_rank_promotion="raise" must not apply
@@ -99,9 +108,9 @@ class MjxSim:
             physics._pose_hand(sc, d, batch.wrist_pos[g], batch.wrist_quat[g], batch.q_start[g])
             qpos[g] = d.qpos
         data = jax.tree_util.tree_map(lambda x: jnp.broadcast_to(x, (b, *x.shape)), self._data0)
-        return data.replace(qpos=jnp.asarray(qpos, self._dtype),
-                            mocap_pos=jnp.asarray(batch.wrist_pos[:, None], self._dtype),
-                            mocap_quat=jnp.asarray(batch.wrist_quat[:, None], self._dtype))
+        return data.replace(qpos=self._put(qpos, self._dtype),
+                            mocap_pos=self._put(batch.wrist_pos[:, None], self._dtype),
+                            mocap_quat=self._put(batch.wrist_quat[:, None], self._dtype))
 
     def run(self, state: mjx.Data, batch: Batch, seg: Segment, track=None) -> mjx.Data:
         """Advance `state` through `seg`; `track(state)` sees the state after each chunk."""
@@ -110,10 +119,10 @@ class MjxSim:
         xfrc = np.zeros((b, m.nbody, 6))
         if seg.force is not None:
             xfrc[:, sc.obj_body, :3] = seg.force
-        active = np.ones((b, m.neq), bool)
+        active = np.tile(m.eq_active0.astype(bool), (b, 1))
         if sc.hold_eq >= 0:
             active[:, sc.hold_eq] = seg.hold
-        state = state.replace(xfrc_applied=jnp.asarray(xfrc, self._dtype), eq_active=jnp.asarray(active))
+        state = state.replace(xfrc_applied=self._put(xfrc, self._dtype), eq_active=self._put(active))
         ctrl = np.zeros((b, physics.CHUNK, m.nu))
         mocap = np.zeros((b, physics.CHUNK, 3))
         for i0 in range(0, seg.n, physics.CHUNK):
@@ -121,8 +130,8 @@ class MjxSim:
             c, off = seg.make(i0, i1)
             ctrl[:, : i1 - i0] = c
             mocap[:, : i1 - i0] = batch.wrist_pos[:, None] + off[None]
-            state = self._call(self._run, self.model, state, jnp.asarray(ctrl, self._dtype),
-                               jnp.asarray(mocap, self._dtype), i1 - i0)
+            state = self._call(self._run, self.model, state, self._put(ctrl, self._dtype),
+                               self._put(mocap, self._dtype), self._put(i1 - i0, np.int32))
             if track is not None:
                 track(state)
         return state
@@ -130,7 +139,7 @@ class MjxSim:
     def probe(self, state: mjx.Data, batch: Batch, offset=(0.0, 0.0, 0.0)) -> dict[str, np.ndarray]:
         """Object pose (world, and position in the hand's root frame), table and hand contact of each state, with
         the wrist target moved by `offset` (3,)."""
-        mocap = jnp.asarray(batch.wrist_pos + np.asarray(offset), self._dtype)
+        mocap = self._put(batch.wrist_pos + np.asarray(offset), self._dtype)
         out = self._call(self._probe, self.model, state, mocap, self.scene.obj_body, self.scene.root_body,
                          *self._masks)
         return {k: np.asarray(v, bool if k in ("table", "touch") else np.float64) for k, v in out.items()}

@@ -1,0 +1,101 @@
+"""Benchmark the physics test: CPU MuJoCo (`mujoco.rollout` threads) against MJX, one protocol, n grasps.
+
+    python bench/bench_physics.py [--object ball] [--n 1024] [--backend both] [--protocol six-dir] [--repeats 3]
+                                  [--grasps FILE.npz] [--workers 0] [--short]
+
+Grasps: `--grasps` (an npz with wrist_pose (B, 4, 4) and q (B, Q), e.g. from `ffcgs grasp`), else a quick
+synthesis of 8 (the valid ones when there are any), tiled to n. Prints a Markdown table per backend: first run
+(MJX: compilation included), median warm run of `--repeats`, grasps and simulated grasp-steps per second, success
+rate. `--short` shrinks every phase (smoke tests: 0.1 s closing, 0.1 s pushes, a 2 cm lift and one short shake).
+"""
+
+import argparse
+import os
+import platform
+import statistics
+import time
+
+import jax
+import numpy as np
+
+from ffcgs_jax import hand_spec, mesh_io, physics
+from ffcgs_jax.config import PROTOCOLS, PhysicsConfig
+
+SHORT = {"close_time": 0.1, "settle_time": 0.05, "push_time": 0.1, "lift_height": 0.02, "shake_amplitude": 0.01,
+         "shake_cycles": 1}
+
+
+def load_grasps(args, mesh) -> tuple[np.ndarray, np.ndarray]:
+    if args.grasps:
+        data = np.load(args.grasps)
+        T, q = data["wrist_pose"], data["q"]
+    else:
+        from ffcgs_jax import grasp
+        from ffcgs_jax import kinematics as K
+        from ffcgs_jax.config import GraspConfig
+
+        gs = grasp.synthesize(K.load_hand("svh"), mesh, GraspConfig(n=8), args.object)
+        keep = np.flatnonzero(gs["valid"]) if gs["valid"].any() else np.arange(len(gs["valid"]))
+        T, q = gs["wrist_pose"][keep], gs["q"][keep]
+    idx = np.arange(args.n) % len(q)
+    return T[idx], q[idx]
+
+
+def steps_per_grasp(batch, cfg: PhysicsConfig, protocol: str) -> int:
+    segs = physics.closing(batch, cfg)
+    if protocol == "lift-shake":
+        segs += physics.lift_shake(batch, cfg)
+    else:
+        segs += [physics.push(batch, cfg, d, 1.0) for d in physics.DIRECTIONS]
+    return sum(s.n for s in segs)
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--object", default="ball", help="built-in object name or mesh path")
+    ap.add_argument("--n", type=int, default=1024, help="grasps per batch")
+    ap.add_argument("--backend", choices=("cpu", "mjx", "both"), default="both")
+    ap.add_argument("--protocol", choices=PROTOCOLS, default="six-dir")
+    ap.add_argument("--repeats", type=int, default=3, help="warm runs after the first")
+    ap.add_argument("--grasps", help="npz with wrist_pose and q (else a quick synthesis of 8, tiled)")
+    ap.add_argument("--workers", type=int, default=0, help="CPU threads (0: all cores)")
+    ap.add_argument("--short", action="store_true", help="shrink every phase, for smoke tests")
+    args = ap.parse_args()
+    cfg = PhysicsConfig(workers=args.workers, **(SHORT if args.short else {}))
+    spec, mesh = hand_spec.load_spec("svh"), mesh_io.load_mesh(args.object)
+    wrist_pose, q = load_grasps(args, mesh)
+    scene = physics.scenes(spec, mesh, cfg, (args.protocol,))[args.protocol]
+    batch, depth, _ = physics.prepare(scene, mesh, wrist_pose, q, cfg)
+    steps = steps_per_grasp(batch, cfg, args.protocol)
+    rows = []
+    for backend in ("cpu", "mjx") if args.backend == "both" else (args.backend,):
+        t0 = time.perf_counter()
+        if backend == "cpu":
+            sim = physics.CpuSim(scene, cfg.workers)
+        else:
+            from ffcgs_jax.physics_mjx import MjxSim
+
+            sim = MjxSim(scene)
+        res = physics.run_protocol(sim, batch, depth, cfg, args.protocol)
+        first = time.perf_counter() - t0
+        times = []
+        for _ in range(args.repeats):
+            t0 = time.perf_counter()
+            physics.run_protocol(sim, batch, depth, cfg, args.protocol)
+            times.append(time.perf_counter() - t0)
+        warm = statistics.median(times) if times else first
+        rows.append((backend, args.n, first, warm, args.n / warm, args.n * steps / warm, res["success"].mean()))
+    dev = jax.devices()[0]
+    workers = cfg.workers or os.cpu_count()
+    print(f"device: {dev.platform} ({dev.device_kind}), jax {jax.__version__}, {platform.machine()}, "
+          f"{workers} CPU threads; object {args.object}, protocol {args.protocol}{' (short)' if args.short else ''}, "
+          f"{steps} steps per grasp, cone {cfg.cone}, {args.repeats} warm repeats")
+    print()
+    print("| backend | n | first run (s) | warm median (s) | grasps/s | grasp-steps/s | success |")
+    print("|---|---|---|---|---|---|---|")
+    for backend, n, first, warm, gps, sps, ok in rows:
+        print(f"| {backend} | {n} | {first:.1f} | {warm:.2f} | {gps:.2f} | {sps:.3g} | {100 * ok:.1f} % |")
+
+
+if __name__ == "__main__":
+    main()
