@@ -39,6 +39,7 @@ def run(args) -> list[dict]:
     if not files:
         raise SystemExit(f"no grasp files in {args.grasps}")
     frictions = [float(f) for f in args.frictions.split(",")]
+    protocols = tuple(args.protocols.split(","))
     rows = []
     for f in tqdm(files, desc="objects x samplers", unit="file"):
         name, method, sampler = f.stem.split("__")
@@ -47,10 +48,11 @@ def run(args) -> list[dict]:
         for mu in frictions:
             t0 = time.perf_counter()
             cfg = PhysicsConfig(friction=mu, workers=args.workers)
-            res = physics.evaluate(spec, mesh, g["wrist_pose"], g["q"], cfg)
+            res = physics.evaluate(spec, mesh, g["wrist_pose"], g["q"], cfg, protocols)
             seconds = time.perf_counter() - t0
             rows.append({
                 "object": name, "method": method, "sampler": sampler, "friction": mu, "seconds": seconds,
+                "trials": len(g["q"]) * len(protocols),
                 "valid": g["valid"].tolist(), "epsilon": g["epsilon"].tolist(), "E": g["E"].tolist(),
                 "E_g": g["E_g"].tolist(), "E_c": g["E_c"].tolist(),
                 **{k: np.asarray(v).tolist() for k, v in res.items()},
@@ -116,8 +118,8 @@ def report(rows: list[dict]) -> None:
                           f"poses, geometric (median {np.median(a):.2f}) vs random ({np.median(b):.2f}): "
                           f"statistic {stat:.1f}, p = {pv:.2g} over {len(objs)} objects")
     total = sum(r["seconds"] for r in rows)
-    trials = sum(2 * len(r["valid"]) for r in rows)
-    print(f"\n{trials} trials in {total:.0f} s of physics: {trials / total:.1f} trials/s")
+    trials = sum(r.get("trials", 2 * len(r["valid"])) for r in rows)
+    print(f"\n{trials} trials in {total:.0f} s of physics (the last run): {trials / total:.1f} trials/s")
 
 
 def main():
@@ -125,6 +127,8 @@ def main():
     ap.add_argument("--grasps", required=True, help="folder of OBJECT__METHOD__SAMPLER.npz from eval_grasp --save")
     ap.add_argument("--ycb", default=str(REPO.parent / "shared" / "objects" / "ycb"))
     ap.add_argument("--frictions", default="0.6,0.2")
+    ap.add_argument("--protocols", default="lift-shake,six-dir")
+    ap.add_argument("--update", help="merge into the rows of this earlier JSON (same grasps), e.g. one protocol re-run")
     ap.add_argument("--workers", type=int, default=0, help="MuJoCo threads (0 = all cores)")
     ap.add_argument("--json", help="write the per-grasp rows to this JSON file")
     ap.add_argument("--report", help="only print the report of a JSON file written before")
@@ -133,6 +137,9 @@ def main():
         report(json.loads(Path(args.report).read_text()))
         return
     rows = run(args)
+    if args.update:  # keep the other protocol's results from an earlier run of the same grasps
+        old = {(r["object"], r["sampler"], r["friction"]): r for r in json.loads(Path(args.update).read_text())}
+        rows = [{**old[(r["object"], r["sampler"], r["friction"])], **r} for r in rows]
     if args.json:
         Path(args.json).write_text(json.dumps(rows))
     report(rows)

@@ -112,6 +112,7 @@ def build(spec: HandSpec, mesh: trimesh.Trimesh, parts: list[tuple[np.ndarray, n
     if hold:
         eq = s.add_equality()
         eq.type, eq.objtype, eq.name, eq.name1 = mujoco.mjtEq.mjEQ_WELD, mujoco.mjtObj.mjOBJ_BODY, "hold", "object"
+        eq.solref = [WELD_TIMECONST, 1.0]  # as stiff as the wrist: at MuJoCo's 0.02 s closing fingers shove it 1-2 cm
     if table_z is not None:
         g = s.worldbody.add_geom()
         g.name, g.type, g.size, g.pos = "table", mujoco.mjtGeom.mjGEOM_PLANE, [0, 0, 0.01], [0, 0, table_z]
