@@ -24,7 +24,7 @@ KINDS = [("lift-shake", 0, "held"), ("lift-shake", 2, "lost"), ("six-dir", 3, "s
 
 
 def pick(rows, protocol: str, reason: int):
-    key = f"{protocol.replace('-', '_')}_reason"
+    key = physics.result_key(protocol, "reason")
     for r in rows:
         if r["sampler"] == "geometric" and r["friction"] == 0.6:
             hits = np.flatnonzero(np.asarray(r["valid"], bool) & (np.asarray(r[key]) == reason))

@@ -231,7 +231,7 @@ def _validate(gs, spec, mesh, cmd: GraspCmd):
         return gs.select(idx), [("kept after --validate", "0 of 0 valid grasps")]
     t0 = time.perf_counter()
     res = _run_physics(spec, mesh, gs["wrist_pose"][idx], gs["q"][idx], cmd.physics, protocols, "cpu")
-    passed = np.logical_and.reduce([res[f"{p.replace('-', '_')}_success"] for p in protocols])
+    passed = np.logical_and.reduce([res[physics.result_key(p, "success")] for p in protocols])
     kept = gs.select(idx[passed])
     for k, v in res.items():
         kept.arrays[k] = v[passed]
@@ -320,7 +320,7 @@ def run_eval(cmd: EvalCmd) -> None:
     data["physics_tested"] = np.isin(np.arange(n), idx)
     data["physics_config_json"] = np.array(json.dumps(dataclasses.asdict(cmd.physics)))
     out = cmd.out or cmd.grasps
-    _save_arrays(data, out)
+    grasp_io.save_arrays(data, out)
     rows = physics.summary_rows(res, protocols)
     rows.append(("grasps tested", f"{len(idx)} ({'all' if cmd.all else 'valid'}) in {seconds:.1f} s, "
                  f"{len(idx) * len(protocols) / seconds:.2f} trials/s, backend {cmd.backend}"))
@@ -329,7 +329,7 @@ def run_eval(cmd: EvalCmd) -> None:
     if cmd.video:
         from ffcgs_jax import physics_video
 
-        first = res[f"{protocols[0].replace('-', '_')}_success"]
+        first = res[physics.result_key(protocols[0], "success")]
         pick = cmd.video_index
         if pick is None:
             pick = int(idx[np.argmax(first)]) if first.any() else int(idx[0])
@@ -341,14 +341,6 @@ def run_eval(cmd: EvalCmd) -> None:
         frames = physics_video.record(scene, batch, 0, cmd.physics, protocols[0], cmd.video,
                                       title=f"{protocols[0]}  grasp {pick}")
         print(f"wrote {cmd.video} (grasp {pick}, {protocols[0]}, {frames} frames)")
-
-
-def _save_arrays(data: dict, path: str) -> None:
-    try:
-        with open(path, "wb") as f:
-            np.savez_compressed(f, **data)
-    except OSError as e:
-        raise FfcgsError(f"cannot write {path}: {e}") from None
 
 
 def _read_poses(path: str) -> np.ndarray:

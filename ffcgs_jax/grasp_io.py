@@ -42,11 +42,16 @@ SCHEMAS = {
 
 def save_npz(gs, path: str | Path) -> None:
     """Write a GraspSet's arrays (and its config as JSON text) to an .npz file."""
+    save_arrays({"object_name": np.array(gs.object_name),
+                 "config_json": np.array(json.dumps(dataclasses.asdict(gs.config))), **gs.arrays}, path)
+
+
+def save_arrays(arrays: dict[str, np.ndarray], path: str | Path) -> None:
+    """Write named arrays to a compressed .npz file (no pickles), or FfcgsError naming the path."""
     path = Path(path)
     try:
         with open(path, "wb") as f:
-            np.savez_compressed(f, object_name=np.array(gs.object_name),
-                                config_json=np.array(json.dumps(dataclasses.asdict(gs.config))), **gs.arrays)
+            np.savez_compressed(f, **arrays)
     except OSError as e:
         raise FfcgsError(f"cannot write {path}: {e}") from None
 

@@ -22,9 +22,7 @@ import trimesh
 from ffcgs_jax.config import PhysicsConfig
 from ffcgs_jax.errors import FfcgsError
 from ffcgs_jax.hand_spec import HandSpec
-
-OBJECT_RGBA = (0.85, 0.55, 0.25, 1.0)
-TABLE_RGBA = (0.72, 0.74, 0.78, 1.0)
+from ffcgs_jax.scene import OBJECT_RGBA, TABLE_RGBA
 ROLLING = 1e-4  # rolling friction (condim 6 only), MuJoCo's default
 WELD_TIMECONST = 0.01  # s: how fast the wrist weld pulls the hand to its target (>= 2 timesteps for stability)
 

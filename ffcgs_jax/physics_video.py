@@ -111,8 +111,7 @@ def record(scene: PhysicsScene, batch: physics.Batch, index: int, cfg: PhysicsCo
         raise FfcgsError(f"grasp index must be an integer in [0, {b}), got {index!r}")
     if suffix == ".mp4":
         width, height = width + width % 2, height + height % 2
-    one = physics.Batch(*(np.asarray(a)[index: index + 1] for a in
-                          (batch.wrist_pos, batch.wrist_quat, batch.q_start, batch.q_target)))
+    one = batch.rows(slice(index, index + 1))
     plan = phases(scene, one, cfg, protocol)
     limit = sum(seg.n for _, seg, _ in plan)
     if max_seconds is not None:
