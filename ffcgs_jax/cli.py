@@ -15,7 +15,8 @@ from pathlib import Path
 import numpy as np
 import tyro
 
-from ffcgs_jax.config import PROTOCOLS, GraspConfig, PhysicsConfig, RenderConfig, SDFConfig, check_all, from_dict
+from ffcgs_jax.config import (PROTOCOLS, DatasetConfig, GraspConfig, PhysicsConfig, RenderConfig, SDFConfig, check_all,
+                              from_dict)
 from ffcgs_jax.errors import FfcgsError
 
 
@@ -362,19 +363,72 @@ def _read_poses(path: str) -> np.ndarray:
     return check_wrist_poses(data, f"wrist poses in {p}").reshape(-1, 4, 4)
 
 
+@dataclasses.dataclass(frozen=True)
+class DatasetInfoCmd:
+    """Print the counts and quality statistics of a dataset file; optionally draw its grasps.
+
+    Attributes:
+        dataset: the .mcap file `ffcgs dataset build` wrote.
+        png: also draw a gallery per object into this directory (<object>.png: its first record's best grasps).
+        objects: the mesh directory the dataset was built from (the file stores SDFs, not meshes); procedural
+            shapes are regenerated without it.
+        per_object: grasps drawn per object.
+        json: also write the statistics to this JSON file.
+    """
+
+    dataset: tyro.conf.Positional[str] = tyro.MISSING
+    png: str | None = None
+    objects: str | None = None
+    per_object: int = 4
+    json: str | None = None
+
+    def check(self) -> None:
+        if not 1 <= self.per_object <= 64:
+            raise FfcgsError(f"--per-object must be in [1, 64], got {self.per_object}")
+
+
+def run_dataset_build(cfg: DatasetConfig) -> None:
+    from ffcgs_jax import dataset_build
+
+    r = dataset_build.build(cfg)
+    print(f"wrote {r['out']}: {r['built']} objects annotated, {r['skipped']} already done, "
+          f"{r['seconds']:.0f} s (per-object timing in {r['timing']})")
+
+
+def run_dataset_info(cmd: DatasetInfoCmd) -> None:
+    from ffcgs_jax import dataset_stats
+
+    stats = dataset_stats.stats(cmd.dataset)
+    print(dataset_stats.format_stats(stats))
+    if cmd.json:
+        Path(cmd.json).write_text(json.dumps(stats, indent=1))
+        print(f"wrote {cmd.json}")
+    if cmd.png:
+        written, skipped = dataset_stats.gallery(cmd.dataset, cmd.png, cmd.per_object, cmd.objects)
+        print(f"wrote {len(written)} gallery picture(s) to {cmd.png}")
+        if skipped:
+            print(f"no picture for {len(skipped)} object(s) without grasps or mesh (pass --objects DIR): "
+                  f"{', '.join(skipped[:8])}{' ...' if len(skipped) > 8 else ''}")
+
+
 COMMANDS: dict[str, tuple[type, Callable]] = {
     "grasp": (GraspCmd, run_grasp),
     "eval": (EvalCmd, run_eval),
     "objects": (ObjectsCmd, run_objects),
     "sdf": (SdfCmd, run_sdf),
     "hand": (HandCmd, run_hand),
+    "dataset build": (DatasetConfig, run_dataset_build),
+    "dataset info": (DatasetInfoCmd, run_dataset_info),
 }
+# Composite configs whose nested sections share field names (seed, filters) keep their prefixes on the command
+# line: `ffcgs dataset build --per-object 200 --planner.population 4096 --physics.friction 0.6`.
+_PREFIXED = {"dataset build"}
 
 
 def _usage() -> str:
     lines = ["usage: ffcgs COMMAND [--config FILE.toml] [options]", "", "commands:"]
     for name, (cls, _) in COMMANDS.items():
-        lines.append(f"  {name:<9} {(cls.__doc__ or '').strip().splitlines()[0]}")
+        lines.append(f"  {name:<14} {(cls.__doc__ or '').strip().splitlines()[0]}")
     lines += ["", "`ffcgs COMMAND --help` lists a command's options."]
     return "\n".join(lines)
 
@@ -400,6 +454,11 @@ def parse(argv: list[str]):
         print(_usage())
         raise SystemExit(0 if argv else 2)
     name, argv = argv[0], argv[1:]
+    if name == "dataset":
+        subs = [c.split(" ", 1)[1] for c in COMMANDS if c.startswith("dataset ")]
+        if not argv or argv[0] not in subs:
+            raise FfcgsError(f"ffcgs dataset needs a subcommand: {', '.join(subs)}")
+        name, argv = f"dataset {argv[0]}", argv[1:]
     if name not in COMMANDS:
         raise FfcgsError(f"unknown command {name!r}; commands: {', '.join(COMMANDS)}")
     cls, fn = COMMANDS[name]
@@ -417,7 +476,7 @@ def parse(argv: list[str]):
             raise FfcgsError(f"config file {p} is not valid TOML: {e}") from None
         default = from_dict(cls, data)
     cmd = tyro.cli(cls, default=default, args=argv, prog=f"ffcgs {name}",
-                   config=(tyro.conf.OmitArgPrefixes,), description=cls.__doc__)
+                   config=() if name in _PREFIXED else (tyro.conf.OmitArgPrefixes,), description=cls.__doc__)
     check_all(cmd)
     return fn, cmd
 

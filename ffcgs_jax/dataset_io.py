@@ -84,7 +84,7 @@ _META_SCHEMA = {
                    "mesh_sha256": {"type": "string", "pattern": "^[0-9a-f]{64}$"},
                    "rotation_index": {"type": "integer", "minimum": 0},
                    "rotation": {"type": "array", "items": {"type": "array", "items": {"type": "number"}}},
-                   "split": {"type": "string"}},
+                   "split": {"type": "string"}, "category": {"type": "string"}, "info": {"type": "object"}},
     "required": ["record_id", "object_name", "mesh_sha256", "rotation_index", "rotation", "split"],
 }
 _ARRAY_SCHEMA = {"type": "object",
@@ -108,6 +108,7 @@ def _arrays_schema(title: str, required: list[str], optional: list[str]) -> dict
 SDF_ARRAYS = {"grid": "<f4", "origin": "<f8", "voxel_size": "<f8", "table_z": "<f8"}
 GRASP_ARRAYS = {"wrist_pose": "<f8", "q": "<f8", "epsilon": "<f8", "E": "<f8", "E_g": "<f8", "E_c": "<f8"}
 PHYSICS_ARRAYS = {"lift_shake_success": "|b1", "six_dir_success": "|b1"}
+OPTIONAL_GRASP_ARRAYS = {"wrist_pose_noisy": "<f8", **PHYSICS_ARRAYS}
 
 SCHEMAS = {
     "/config": {"title": "ffcgs.DatasetConfig", "type": "object",
@@ -115,7 +116,7 @@ SCHEMAS = {
                                "extra": {"type": "object"}},
                 "required": ["version", "config", "extra"]},
     "/sdf": _arrays_schema("ffcgs.DatasetSdf", list(SDF_ARRAYS), []),
-    "/grasps": _arrays_schema("ffcgs.DatasetGrasps", list(GRASP_ARRAYS), list(PHYSICS_ARRAYS)),
+    "/grasps": _arrays_schema("ffcgs.DatasetGrasps", list(GRASP_ARRAYS), list(OPTIONAL_GRASP_ARRAYS)),
 }
 _MESSAGE_ENCODINGS = {"/config": "json", "/sdf": ENCODING, "/grasps": ENCODING}
 
@@ -162,6 +163,9 @@ class Record:
     E_c: np.ndarray
     lift_shake_success: np.ndarray | None = None
     six_dir_success: np.ndarray | None = None
+    wrist_pose_noisy: np.ndarray | None = None
+    category: str = ""
+    info: dict = dataclasses.field(default_factory=dict)
     index: int = -1
 
     @property
@@ -175,7 +179,8 @@ class Record:
     @classmethod
     def create(cls, *, object_name: str, mesh_sha256: str, rotation_index: int, rotation, split: str, sdf=None,
                grid=None, origin=None, voxel_size=None, table_z=None, wrist_pose, q, epsilon, E, E_g, E_c,
-               lift_shake_success=None, six_dir_success=None, index: int = -1) -> Record:
+               lift_shake_success=None, six_dir_success=None, wrist_pose_noisy=None, category: str = "",
+               info: dict | None = None, index: int = -1) -> Record:
         """Check and convert. The SDF is either `sdf` (a `GradientSDF` or anything with .grid, .origin,
         .voxel_size, .table_z) or the four arrays; float arrays become float32 (grid) / float64 (the rest)."""
         if sdf is not None:
@@ -218,20 +223,35 @@ class Record:
                    for k, v in (("epsilon", epsilon), ("E", E), ("E_g", E_g), ("E_c", E_c))}
         physics = {k: None if v is None else arr(k, v, "|b1", lambda s: s == (g,), f"(G,) = ({g},)")
                    for k, v in (("lift_shake_success", lift_shake_success), ("six_dir_success", six_dir_success))}
+        if wrist_pose_noisy is not None:
+            wrist_pose_noisy = arr("wrist_pose_noisy", wrist_pose_noisy, "<f8", lambda s: s == (g, 4, 4),
+                                   f"(G, 4, 4) = ({g}, 4, 4)")
+        if not isinstance(category, str):
+            raise FfcgsError(f"{where}: category must be a string, got {category!r}")
+        info = {} if info is None else info
+        if not isinstance(info, dict):
+            raise FfcgsError(f"{where}: info must be a dict, got {type(info).__name__}")
+        _canonical(info, f"{where}: info")  # JSON-serialisable, or a clear error now rather than at write time
         return cls(object_name=object_name, mesh_sha256=mesh_sha256, rotation_index=int(rotation_index),
                    rotation=rotation, split=split, grid=grid, origin=origin, voxel_size=voxel_size, table_z=table_z,
-                   wrist_pose=wrist_pose, q=q, **scalars, **physics, index=int(index))
+                   wrist_pose=wrist_pose, q=q, **scalars, **physics, wrist_pose_noisy=wrist_pose_noisy,
+                   category=category, info=info, index=int(index))
 
     def meta(self) -> dict:
-        return {"record_id": self.record_id, "object_name": self.object_name, "mesh_sha256": self.mesh_sha256,
+        meta = {"record_id": self.record_id, "object_name": self.object_name, "mesh_sha256": self.mesh_sha256,
                 "rotation_index": self.rotation_index, "rotation": self.rotation.tolist(), "split": self.split}
+        if self.category:
+            meta["category"] = self.category
+        if self.info:
+            meta["info"] = self.info
+        return meta
 
     def sdf_arrays(self) -> dict[str, np.ndarray]:
         return {k: getattr(self, k) for k in SDF_ARRAYS}
 
     def grasp_arrays(self) -> dict[str, np.ndarray]:
         out = {k: getattr(self, k) for k in GRASP_ARRAYS}
-        out.update({k: getattr(self, k) for k in PHYSICS_ARRAYS if getattr(self, k) is not None})
+        out.update({k: getattr(self, k) for k in OPTIONAL_GRASP_ARRAYS if getattr(self, k) is not None})
         return out
 
 
@@ -293,11 +313,12 @@ def _record_from(sdf_meta: dict, sdf_arrays: dict, grasp_meta: dict, grasp_array
     missing += [k for k in (*GRASP_ARRAYS,) if k not in grasp_arrays]
     if missing:
         raise FfcgsError(f"{what}: record lacks field(s) {', '.join(missing)}")
-    extra = set(grasp_arrays) - set(GRASP_ARRAYS) - set(PHYSICS_ARRAYS)
+    extra = set(grasp_arrays) - set(GRASP_ARRAYS) - set(OPTIONAL_GRASP_ARRAYS)
     if extra or set(sdf_arrays) - set(SDF_ARRAYS):
         raise FfcgsError(f"{what}: unknown array(s) {sorted(extra | (set(sdf_arrays) - set(SDF_ARRAYS)))}")
     try:
         rec = Record.create(**{k: sdf_meta[k] for k in _META_SCHEMA["required"] if k != "record_id"},
+                            category=sdf_meta.get("category", ""), info=sdf_meta.get("info"),
                             **sdf_arrays, **grasp_arrays, index=index)
     except FfcgsError as e:
         raise FfcgsError(f"{what}: {e}") from None
@@ -395,7 +416,7 @@ def parts_dir_for(out_path: str | Path) -> Path:
     return out_path.with_name(out_path.name + ".parts")
 
 
-def _atomic_write(path: Path, write) -> None:
+def atomic_write(path: Path, write) -> None:
     tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
     try:
         with open(tmp, "wb") as f:
@@ -438,7 +459,7 @@ def init_parts(parts_dir: str | Path, config: dict, extra: dict | None = None) -
         parts_dir.mkdir(parents=True, exist_ok=True)
     except OSError as e:
         raise FfcgsError(f"cannot create {parts_dir}: {e}") from None
-    _atomic_write(cfg, lambda f: f.write(text.encode()))
+    atomic_write(cfg, lambda f: f.write(text.encode()))
     return parts_dir
 
 
@@ -485,7 +506,7 @@ def write_part(parts_dir: str | Path, record: Record) -> Path:
         if path.read_bytes() == data:
             return path
         raise FfcgsError(f"record {record.record_id} already has a part {path} with different content")
-    _atomic_write(path, lambda f: f.write(data))
+    atomic_write(path, lambda f: f.write(data))
     return path
 
 
@@ -537,7 +558,7 @@ def merge(parts_dir: str | Path, out_path: str | Path, expected: Iterable[str] |
             w.add_message(ch["/grasps"], log_time=i, publish_time=i, sequence=i, data=grasp_data)
         w.finish()
 
-    _atomic_write(out_path, write)
+    atomic_write(out_path, write)
     return out_path
 
 

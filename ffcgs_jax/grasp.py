@@ -21,6 +21,7 @@ from ffcgs_jax import metrics, samplers
 from ffcgs_jax import sdf as sdf_mod
 from ffcgs_jax.config import EnergyConfig, GraspConfig, OptimConfig, check_all
 from ffcgs_jax.energy import Target, make_target
+from ffcgs_jax.errors import FfcgsError
 from ffcgs_jax.kinematics import Hand
 from ffcgs_jax.optimize import OptResult, _optimize
 
@@ -46,13 +47,13 @@ class DeviceConfig(NamedTuple):
 
 
 def _device_part(hand: Hand, target: Target, key: jax.Array, given: jax.Array | None, cfg: DeviceConfig,
-                 n: int) -> DeviceOut:
+                 n: int, given_q: jax.Array | None = None) -> DeviceOut:
     if given is None:
         palm_root = K.forward_kinematics(hand, jnp.eye(4, dtype=hand.lower.dtype), jnp.zeros_like(hand.lower)).palm_pos
         poses = samplers.CORES[cfg.sampler](hand, palm_root, key, target.sdf, n, cfg.sampling, cfg.filters)
     else:
         poses = given
-    opt = _optimize(hand, target, poses, cfg.energy, cfg.optim)
+    opt = _optimize(hand, target, poses, cfg.energy, cfg.optim, given_q)
     poses = opt.wrist_pose
     tips = jnp.moveaxis(opt.trace.tips, 1, 0)  # (B, T+1, C, 3)
     pen = jax.vmap(lambda H, q: F.hand_penetration(hand, target.sdf, H, q)[0])(poses, opt.q)
@@ -72,13 +73,13 @@ _device_jit = jax.jit(_device_part, static_argnames=("cfg", "n"))
 _COMPILED: dict = {}
 
 
-def _compiled(hand: Hand, target: Target, key: jax.Array, given, dcfg: DeviceConfig, n: int):
+def _compiled(hand: Hand, target: Target, key: jax.Array, given, dcfg: DeviceConfig, n: int, given_q=None):
     """Ahead-of-time compiled device part, cached like jit's own cache (AOT compiles bypass that cache), so that
     compile time can be reported apart and a second object of the same grid size reuses the executable."""
-    shapes = jax.tree.map(lambda x: (x.shape, x.dtype), (target, key, given))
+    shapes = jax.tree.map(lambda x: (x.shape, x.dtype), (target, key, given, given_q))
     k = (hand.spec, dcfg, n, str(shapes), jax.default_backend())
     if k not in _COMPILED:
-        _COMPILED[k] = _device_jit.lower(hand, target, key, given, cfg=dcfg, n=n).compile()
+        _COMPILED[k] = _device_jit.lower(hand, target, key, given, cfg=dcfg, n=n, given_q=given_q).compile()
     return _COMPILED[k]
 
 
@@ -107,9 +108,11 @@ class GraspSet:
 
 
 def synthesize(hand: Hand, mesh: trimesh.Trimesh, cfg: GraspConfig = GraspConfig(), object_name: str = "object",
-               grid: sdf_mod.GradientSDF | None = None, poses: np.ndarray | None = None) -> GraspSet:
+               grid: sdf_mod.GradientSDF | None = None, poses: np.ndarray | None = None,
+               q: np.ndarray | None = None) -> GraspSet:
     """Sample `cfg.n` wrist poses on the object (or take `poses`, (B, 4, 4), object frame), optimise the fingers,
-    filter and evaluate the grasps."""
+    filter and evaluate the grasps. `q` (B, Q), only with `poses`, starts the descent there instead of at the open
+    hand (the annotation planner passes its annealed channels)."""
     check_all(cfg)  # nested configs too: an unknown optim.method must not silently fall back
     if grid is None:
         grid = sdf_mod.build_sdf(mesh, cfg.sdf)
@@ -118,22 +121,32 @@ def synthesize(hand: Hand, mesh: trimesh.Trimesh, cfg: GraspConfig = GraspConfig
     given = None
     if poses is not None:
         given = jnp.asarray(K.check_wrist_poses(poses, "wrist poses").reshape(-1, 4, 4), target.sdf.grid.dtype)
-    run, compile_s = compile_device(hand, target, cfg, given)
+    given_q = None
+    if q is not None:
+        if given is None:
+            raise FfcgsError("start channels q need the wrist poses they belong to (poses=...)")
+        qa = np.asarray(q)
+        if qa.shape != (given.shape[0], hand.n_channels) or not np.isfinite(qa).all():
+            raise FfcgsError(f"start channels q must be finite with shape ({given.shape[0]}, {hand.n_channels}), "
+                             f"got {qa.shape}")
+        given_q = jnp.asarray(qa, target.sdf.grid.dtype)
+    run, compile_s = compile_device(hand, target, cfg, given, given_q)
     t0 = time.perf_counter()
     out = jax.block_until_ready(run(key))
     synthesis_s = time.perf_counter() - t0
     return _finish(hand, mesh, target, cfg, out, synthesis_s, compile_s, object_name)
 
 
-def compile_device(hand: Hand, target: Target, cfg: GraspConfig, given: jax.Array | None = None):
+def compile_device(hand: Hand, target: Target, cfg: GraspConfig, given: jax.Array | None = None,
+                   given_q: jax.Array | None = None):
     """The compiled device part (sampling or `given` poses, descent, filters) as `run(key) -> DeviceOut`, and the
     seconds its compilation took (0 when cached). For benchmarks: time `run` apart from host-side evaluation."""
     n = cfg.n if given is None else given.shape[0]
     dcfg = DeviceConfig(cfg.sampler if given is None else "given", cfg.sampling, cfg.energy, cfg.optim, cfg.filters)
     key0 = jax.random.PRNGKey(0)
     t0 = time.perf_counter()
-    compiled = _compiled(hand, target, key0, given, dcfg, n)
-    return (lambda key: compiled(hand, target, key, given)), time.perf_counter() - t0
+    compiled = _compiled(hand, target, key0, given, dcfg, n, given_q)
+    return (lambda key: compiled(hand, target, key, given, given_q=given_q)), time.perf_counter() - t0
 
 
 def _finish(hand, mesh, target, cfg, out: DeviceOut, synthesis_s, compile_s, object_name) -> GraspSet:

@@ -9,9 +9,11 @@ from ffcgs_jax.kinematics import Hand
 
 
 def grasps_image(hand: Hand, mesh: trimesh.Trimesh, gs, k: int = 4, size: int = 320,
-                 views: tuple[str, ...] = ("front", "side", "top"), backend: str = "auto") -> tuple[np.ndarray, str]:
-    """(k * size, len(views) * size, 3) image of the k best grasps (valid first, by E) with a caption each."""
-    order = gs.order()[:k]
+                 views: tuple[str, ...] = ("front", "side", "top"), backend: str = "auto",
+                 order: np.ndarray | None = None) -> tuple[np.ndarray, str]:
+    """(k * size, len(views) * size, 3) image of the k best grasps (valid first, by E; or the grasps at `order`)
+    with a caption each."""
+    order = gs.order()[:k] if order is None else np.asarray(order)
     rows, used = [], "software"
     coupling = np.asarray(hand.coupling)
     table_z = float(mesh.bounds[0, 2])

@@ -54,7 +54,8 @@ def twist_pose(H: Float[Array, "4 4"], xi: Float[Array, " 6"]) -> Float[Array, "
     return H @ D
 
 
-def _optimize(hand: Hand, target: Target, poses, energy_cfg: EnergyConfig, optim_cfg: OptimConfig) -> OptResult:
+def _optimize(hand: Hand, target: Target, poses, energy_cfg: EnergyConfig, optim_cfg: OptimConfig,
+              q_start=None) -> OptResult:
     B = poses.shape[0]
     T = optim_cfg.iters
     wrist = optim_cfg.wrist
@@ -64,7 +65,8 @@ def _optimize(hand: Hand, target: Target, poses, energy_cfg: EnergyConfig, optim
         return energy(hand, target, twist_pose(H, xi) if wrist else H, q, energy_cfg)
 
     value_and_grad = jax.vmap(jax.value_and_grad(total, argnums=1, has_aux=True))
-    q0 = jnp.broadcast_to(jnp.clip(jnp.zeros_like(hand.lower), hand.lower, hand.upper), (B, hand.n_channels))
+    q0 = jnp.zeros_like(hand.lower) if q_start is None else jnp.asarray(q_start, hand.lower.dtype)
+    q0 = jnp.broadcast_to(jnp.clip(q0, hand.lower, hand.upper), (B, hand.n_channels))
     xi0 = jnp.zeros((B, 6), poses.dtype)
     # per-variable scale of the step: channels in rad, wrist rotation in rad, wrist translation in metres
     scale = (jnp.ones_like(hand.lower),
@@ -110,6 +112,7 @@ Args:
     hand: from `kinematics.load_hand`.
     target: `energy.make_target(sdf)`.
     poses: (B, 4, 4) wrist poses in the object frame.
+    q_start: optional (B, Q) starting channels (clipped to the limits); default the open hand, q = 0.
     energy_cfg, optim_cfg: frozen configs (static: a new config compiles a new function).
 Returns:
     OptResult with q (B, Q), the final energy terms, iteration counts, flags and the per-iteration trace.

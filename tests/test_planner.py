@@ -13,11 +13,11 @@ from ffcgs_jax import energy, mesh_io
 from ffcgs_jax import kinematics as K
 from ffcgs_jax import planner as PL
 from ffcgs_jax import sdf as S
-from ffcgs_jax.config import SDFConfig
+from ffcgs_jax.config import FilterConfig, PlannerConfig, SDFConfig
 from ffcgs_jax.errors import FfcgsError
 
 # One small config for every test, so the two executables (start, anneal_from) compile once.
-CFG = PL.PlannerConfig(population=8, steps=30)
+CFG = PlannerConfig(population=8, steps=30, refine=8)
 KEY = jax.random.PRNGKey(3)
 
 
@@ -38,12 +38,12 @@ def run(hand, target):
 
 def test_annealing_lowers_the_energy(hand, target, run):
     s = PL.start_jit(hand, target, CFG, KEY)
-    before = np.asarray(PL.cheap_energy_batch(hand, target, s.poses, s.q, CFG))
+    before = np.asarray(PL.cheap_energy_batch(hand, target, s.poses, s.q, CFG, FilterConfig()))
     poses, q, E = (np.asarray(a) for a in run)
     assert np.all(E <= before)  # the best state seen includes the start
     assert np.mean(E) < 0.9 * np.mean(before)
     # the returned energy is that of the returned state
-    np.testing.assert_allclose(PL.cheap_energy_batch(hand, target, jnp.asarray(poses), jnp.asarray(q), CFG), E,
+    np.testing.assert_allclose(PL.cheap_energy_batch(hand, target, jnp.asarray(poses), jnp.asarray(q), CFG, FilterConfig()), E,
                                rtol=1e-9)
 
 
@@ -95,7 +95,7 @@ def test_temperatures_cool_geometrically():
 
 @pytest.mark.parametrize("change", [
     {"population": 0}, {"steps": 0}, {"t0": 0.0}, {"t_end": -1.0}, {"t0": 0.01, "t_end": 0.1}, {"step_q": -0.1},
-    {"a_pen": float("nan")}, {"seed": -1},
+    {"a_pen": float("nan")}, {"refine": 0}, {"refine": 9},
 ])
 def test_config_errors(change):
     with pytest.raises(FfcgsError):
@@ -103,6 +103,37 @@ def test_config_errors(change):
     CFG.check()
 
 
-def test_plan_rejects_bad_keep(hand):
-    with pytest.raises(FfcgsError, match="keep"):
-        PL.plan(hand, mesh_io.load_mesh("box"), CFG, keep=CFG.population + 1)
+def test_rank_puts_valid_first_then_epsilon():
+    from ffcgs_jax.config import GraspConfig
+    from ffcgs_jax.grasp import GraspSet
+
+    gs = GraspSet(dict(valid=np.array([False, True, True, True, False]), epsilon=np.array([0.9, 0.0, 0.2, 0.2, 0.1]),
+                       E=np.array([0.0, 0.1, 0.3, 0.2, 0.0])), {}, GraspConfig(), "toy")
+    assert PL.rank(gs).tolist() == [3, 2, 1, 0, 4]
+
+
+def test_dedupe_drops_near_duplicates_only():
+    from scipy.spatial.transform import Rotation
+
+    base = np.eye(4)
+    near = np.eye(4)
+    near[:3, :3] = Rotation.from_rotvec([0.05, 0, 0]).as_matrix()
+    near[:3, 3] = [0.003, 0, 0]
+    far_t = np.eye(4)
+    far_t[:3, 3] = [0.02, 0, 0]  # same rotation, 2 cm away: kept
+    far_r = np.eye(4)
+    far_r[:3, :3] = Rotation.from_rotvec([0, 0.5, 0]).as_matrix()  # same place, 0.5 rad: kept
+    poses = np.stack([base, near, far_t, far_r, near])
+    assert PL.dedupe(poses, 0.005, 0.1).tolist() == [0, 2, 3]
+    assert PL.dedupe(poses, 0.0, 0.0).tolist() == [0, 1, 2, 3, 4]
+    # a loop over pairs as the reference
+    rng = np.random.default_rng(0)
+    P = np.tile(np.eye(4), (40, 1, 1))
+    P[:, :3, :3] = Rotation.random(40, random_state=1).as_matrix()
+    P[:, :3, 3] = rng.uniform(-0.01, 0.01, (40, 3))
+    kept = []
+    for i in range(40):
+        if not any(np.linalg.norm(P[i, :3, 3] - P[k, :3, 3]) < 0.008
+                   and Rotation.from_matrix(P[i, :3, :3].T @ P[k, :3, :3]).magnitude() < 2.0 for k in kept):
+            kept.append(i)
+    assert PL.dedupe(P, 0.008, 2.0).tolist() == kept
