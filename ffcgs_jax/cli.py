@@ -391,8 +391,14 @@ def run_dataset_build(cfg: DatasetConfig) -> None:
     from ffcgs_jax import dataset_build
 
     r = dataset_build.build(cfg)
-    print(f"wrote {r['out']}: {r['built']} objects annotated, {r['skipped']} already done, "
-          f"{r['seconds']:.0f} s (per-object timing in {r['timing']})")
+    done = f"{r['built']} objects built, {r['skipped']} already done, {r['seconds']:.0f} s (timing in {r['timing']})"
+    if r.get("partial"):
+        print(f"wrote {r['out']} with the annotated objects only: {done}; {r['missing']} records missing")
+    elif r["out"] is None:
+        print(f"shard {cfg.shard} finished: {done}; {r['missing']} records of other shards missing, so {cfg.out} "
+              f"is not written yet (rerun without --shard once they are done)")
+    else:
+        print(f"wrote {r['out']}: {done}")
 
 
 def run_dataset_info(cmd: DatasetInfoCmd) -> None:

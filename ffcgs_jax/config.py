@@ -479,8 +479,8 @@ class DatasetConfig:
     Attributes:
         objects: directory of meshes (stl, obj, ply, off, glb; metres, z up). Files are taken in sorted order; the
             test split is the files at positions where index % 5 == 4, the rest is train.
-        out: the dataset file (.mcap). Finished records are kept in OUT.parts/ until the build completes, so a
-            rerun of the same command continues an interrupted build.
+        out: the dataset file (.mcap). Finished records and per-object annotations are kept in OUT.parts/ (also
+            after the merge; delete it yourself), so a rerun of the same command continues an interrupted build.
         split: "train", "test" or "all" of `objects`.
         per_object: grasps kept per object (the best by epsilon among those that pass the physics test).
         rotations: random rotations per object; every rotation is its own record with all the object's grasps.
@@ -498,6 +498,12 @@ class DatasetConfig:
         physics_test: "both" (six-dir, then lift-shake on the survivors; both must pass) or "none" (rank by
             epsilon only; for quick tests).
         hand: built-in hand name or hand-spec TOML.
+        shard: "K/N" builds only objects K, K+N, K+2N, ... (0-based, in build order) so N processes or machines
+            can share one parts directory; the last to finish merges (or rerun without --shard to merge). Not part
+            of the dataset's config, nor is physics.workers: neither changes a record.
+        annotate: False writes records only for objects already annotated (in OUT.parts/annotations, e.g. copied
+            from the machines that annotated them) and merges them into a partial OUT, saying how many records
+            are missing; the default annotates everything first.
         planner, grasp, physics: the planner, the refinement (the grasp pipeline on given poses) and the test.
     """
 
@@ -516,9 +522,20 @@ class DatasetConfig:
     physics_chunk: int = 128
     physics_test: str = "both"
     hand: str = "svh"
+    shard: str = "0/1"
+    annotate: bool = True
     planner: PlannerConfig = PlannerConfig()
     grasp: GraspConfig = GraspConfig()
     physics: PhysicsConfig = PhysicsConfig()
+
+    def shard_of(self) -> tuple[int, int]:
+        try:
+            k, n = (int(x) for x in self.shard.split("/"))
+        except ValueError:
+            k, n = -1, 0
+        if not 0 <= k < n:
+            raise FfcgsError(f"--shard must be K/N with 0 <= K < N, got {self.shard!r}")
+        return k, n
 
     def check(self) -> None:
         if self.split not in SPLITS:
@@ -538,3 +555,4 @@ class DatasetConfig:
                 raise FfcgsError(f"{name.replace('_', '-')} must be a number in [0, 10], got {v!r}")
         if not self.out.endswith(".mcap"):
             raise FfcgsError(f"--out must name an .mcap file, got {self.out!r}")
+        self.shard_of()

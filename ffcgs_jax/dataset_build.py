@@ -102,6 +102,9 @@ def sources(cfg: DatasetConfig) -> list[Source]:
     if cfg.split in ("train", "all"):
         for i in range(cfg.procedural):
             name, mesh = procedural.shape(cfg.seed, i)
+            if name in stems:
+                raise FfcgsError(f"{directory} has a file named like procedural shape {name!r}; rename it or "
+                                 f"build without --procedural")
             out.append(Source(name, "train", "procedural", _mesh_sha256(mesh), mesh=mesh))
     return out
 
@@ -147,8 +150,9 @@ def rotate_mesh(mesh: trimesh.Trimesh, R: np.ndarray) -> trimesh.Trimesh:
 def record_config(cfg: DatasetConfig) -> dict:
     """The config stored in the dataset and checked on resume: everything but where the files are."""
     d = dataclasses.asdict(cfg)
-    for k in ("objects", "out"):
+    for k in ("objects", "out", "shard", "annotate"):
         d.pop(k)
+    d["physics"].pop("workers")
     return d
 
 
@@ -237,7 +241,8 @@ def records(source: Source, mesh: trimesh.Trimesh, ann: Annotation, cfg: Dataset
 
 
 def build(cfg: DatasetConfig, show_progress: bool = True) -> dict:
-    """Run (or resume) the build; returns {"out", "built", "skipped", "seconds", "timing"}."""
+    """Run (or resume) the build; returns {"out", "built", "skipped", "seconds", "timing", "missing"}: "out" is None
+    when this shard finished but other shards' records are still missing (then "missing" counts them)."""
     import jax
     from tqdm.auto import tqdm
 
@@ -255,7 +260,8 @@ def build(cfg: DatasetConfig, show_progress: bool = True) -> dict:
     timing_log = writer.parts_dir / "timing.jsonl"
     t_start = time.perf_counter()
     built = skipped = 0
-    bar = tqdm(srcs, desc="objects", unit="obj", disable=not show_progress, dynamic_ncols=True)
+    k, n = cfg.shard_of()
+    bar = tqdm(srcs[k::n], desc="objects", unit="obj", disable=not show_progress, dynamic_ncols=True)
     for src in bar:
         todo = {r for r in range(cfg.rotations) if dataset_io.record_id(src.name, r) not in writer.done}
         if not todo:
@@ -271,6 +277,8 @@ def build(cfg: DatasetConfig, show_progress: bool = True) -> dict:
         cached = annotation_path(writer.parts_dir, src.name)
         if cached.is_file():  # annotated before (this run was interrupted, or another machine did it)
             ann = Annotation.load(cached)
+        elif not cfg.annotate:
+            continue
         else:
             ann = annotate(hand, spec, mesh, cfg, src.name, progress=tick)
             cached.parent.mkdir(exist_ok=True)
@@ -287,6 +295,12 @@ def build(cfg: DatasetConfig, show_progress: bool = True) -> dict:
             tqdm.write(f"{src.name}: kept {ann.counts['kept']} of {ann.counts['valid']} valid "
                        f"({ann.counts.get('tested_six_dir', 0)} physics-tested) in {row['total_s']:.0f} s")
     bar.close()
-    writer.finish(expected)
-    return {"out": cfg.out, "built": built, "skipped": skipped, "seconds": time.perf_counter() - t_start,
-            "timing": str(timing_log)}
+    missing = len(set(expected) - set(dataset_io.done_records(writer.parts_dir)))
+    if not missing:
+        writer.finish(expected)
+    elif not cfg.annotate and cfg.shard_of() == (0, 1):
+        writer.finish()  # a partial dataset, asked for: what is annotated so far
+        return {"out": cfg.out, "built": built, "skipped": skipped, "missing": missing, "partial": True,
+                "seconds": time.perf_counter() - t_start, "timing": str(timing_log)}
+    return {"out": None if missing else cfg.out, "built": built, "skipped": skipped, "missing": missing,
+            "seconds": time.perf_counter() - t_start, "timing": str(timing_log)}

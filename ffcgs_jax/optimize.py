@@ -66,7 +66,7 @@ def _optimize(hand: Hand, target: Target, poses, energy_cfg: EnergyConfig, optim
 
     value_and_grad = jax.vmap(jax.value_and_grad(total, argnums=1, has_aux=True))
     q0 = jnp.zeros_like(hand.lower) if q_start is None else jnp.asarray(q_start, hand.lower.dtype)
-    q0 = jnp.broadcast_to(jnp.clip(q0, hand.lower, hand.upper), (B, hand.n_channels))
+    q0 = jnp.clip(jnp.broadcast_to(q0, (B, hand.n_channels)), hand.lower[None], hand.upper[None])
     xi0 = jnp.zeros((B, 6), poses.dtype)
     # per-variable scale of the step: channels in rad, wrist rotation in rad, wrist translation in metres
     scale = (jnp.ones_like(hand.lower),

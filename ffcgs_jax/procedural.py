@@ -2,7 +2,8 @@
 
 The YCB training split has 36 objects; these add shape variety for the sampler (`ffcgs dataset build
 --procedural N`). Shape i depends only on (seed, i), so adding shapes never changes the earlier ones. Sizes are
-drawn so that the hand can close around some part: the smallest extent is 2-8 cm and the largest at most 20 cm.
+drawn so that the hand can close around some part: the smallest extent is 2-9 cm and the largest at most 21 cm
+(round shapes get 5 mm added to their radii).
 Each mesh rests on z = 0 and is centred in x and y, like the built-in objects.
 """
 
