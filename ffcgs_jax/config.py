@@ -362,6 +362,16 @@ def _range(name: str, value: int | float, lo: int | float, hi: int | float) -> N
         raise FfcgsError(f"{name} must be in [{lo}, {hi}], got {value}")
 
 
+def _integer(name: str, value: Any, lo: int, hi: int) -> None:
+    """Like `_range`, for a field that must be a true int (not a bool, not a float from a TOML typo)."""
+    if isinstance(value, bool) or not isinstance(value, int) or not lo <= value <= hi:
+        raise FfcgsError(f"{name} must be an integer in [{lo}, {hi}], got {value!r}")
+
+
+def _finite(value: Any) -> bool:
+    return isinstance(value, (int, float)) and math.isfinite(value)
+
+
 def from_dict(cls: type[T], data: Any, where: str = "") -> T:
     """Build dataclass `cls` from a nested dict, naming any unknown key and listing the valid ones."""
     if not isinstance(data, dict):
@@ -452,17 +462,15 @@ class PlannerConfig:
     refine: int = 512
 
     def check(self) -> None:
-        for name, lo, hi in (("population", 1, 1_000_000), ("steps", 1, 1_000_000), ("refine", 1, 1_000_000)):
-            v = getattr(self, name)
-            if isinstance(v, bool) or not isinstance(v, int) or not lo <= v <= hi:
-                raise FfcgsError(f"planner.{name} must be an integer in [{lo}, {hi}], got {v!r}")
+        for name in ("population", "steps", "refine"):
+            _integer(f"planner.{name}", getattr(self, name), 1, 1_000_000)
         if self.refine > self.population:
             raise FfcgsError(f"planner.refine ({self.refine}) must not exceed planner.population ({self.population})")
         for name in ("t0", "t_end", "step_shift", "step_rot", "step_q", "a_c", "a_q", "a_pen", "a_fc", "a_up"):
             v = getattr(self, name)
-            positive = name in ("t0", "t_end")
-            if not (isinstance(v, (int, float)) and math.isfinite(v) and (v > 0 if positive else v >= 0)):
-                raise FfcgsError(f"planner.{name} must be a finite number {'> 0' if positive else '>= 0'}, got {v!r}")
+            if not (_finite(v) and (v > 0 if name in ("t0", "t_end") else v >= 0)):
+                raise FfcgsError(f"planner.{name} must be a finite number "
+                                 f"{'> 0' if name in ('t0', 't_end') else '>= 0'}, got {v!r}")
         if self.t_end > self.t0:
             raise FfcgsError(f"planner.t_end ({self.t_end}) must not exceed planner.t0 ({self.t0}): it cools")
 
@@ -546,12 +554,10 @@ class DatasetConfig:
             raise FfcgsError(f"physics_test must be 'both' or 'none', got {self.physics_test!r}")
         for name, lo, hi in (("per_object", 1, 1_000_000), ("rotations", 1, 1000), ("procedural", 0, 100_000),
                              ("physics_chunk", 1, 1_000_000), ("seed", 0, 2**63 - 1)):
-            v = getattr(self, name)
-            if isinstance(v, bool) or not isinstance(v, int) or not lo <= v <= hi:
-                raise FfcgsError(f"{name.replace('_', '-')} must be an integer in [{lo}, {hi}], got {v!r}")
+            _integer(name.replace("_", "-"), getattr(self, name), lo, hi)
         for name in ("noise_trans", "noise_rot", "dedupe_trans", "dedupe_rot"):
             v = getattr(self, name)
-            if not (isinstance(v, (int, float)) and math.isfinite(v) and 0 <= v <= 10):
+            if not (_finite(v) and 0 <= v <= 10):
                 raise FfcgsError(f"{name.replace('_', '-')} must be a number in [0, 10], got {v!r}")
         if not self.out.endswith(".mcap"):
             raise FfcgsError(f"--out must name an .mcap file, got {self.out!r}")

@@ -56,11 +56,11 @@ class Source:
         return self.mesh if self.mesh is not None else mesh_io.load_mesh(self.path)
 
 
-def _file_sha256(path: Path) -> str:
+def file_sha256(path: Path) -> str:
     return hashlib.sha256(path.read_bytes()).hexdigest()
 
 
-def _mesh_sha256(mesh: trimesh.Trimesh) -> str:
+def mesh_sha256(mesh: trimesh.Trimesh) -> str:
     h = hashlib.sha256(np.ascontiguousarray(mesh.vertices, "<f8").tobytes())
     h.update(np.ascontiguousarray(mesh.faces, "<i8").tobytes())
     return h.hexdigest()
@@ -98,14 +98,14 @@ def sources(cfg: DatasetConfig) -> list[Source]:
     for i, p in enumerate(files):
         split = "test" if i % 5 == 4 else "train"
         if cfg.split in ("all", split):
-            out.append(Source(p.stem, split, cats.get(p.name, ""), _file_sha256(p), path=p))
+            out.append(Source(p.stem, split, cats.get(p.name, ""), file_sha256(p), path=p))
     if cfg.split in ("train", "all"):
         for i in range(cfg.procedural):
             name, mesh = procedural.shape(cfg.seed, i)
             if name in stems:
                 raise FfcgsError(f"{directory} has a file named like procedural shape {name!r}; rename it or "
                                  f"build without --procedural")
-            out.append(Source(name, "train", "procedural", _mesh_sha256(mesh), mesh=mesh))
+            out.append(Source(name, "train", "procedural", mesh_sha256(mesh), mesh=mesh))
     return out
 
 
@@ -141,10 +141,14 @@ def noisy(poses: np.ndarray, sigma_t: float, sigma_r: float, rng: np.random.Gene
     return out
 
 
-def rotate_mesh(mesh: trimesh.Trimesh, R: np.ndarray) -> trimesh.Trimesh:
+def _homogeneous(R: np.ndarray) -> np.ndarray:
     T = np.eye(4)
     T[:3, :3] = R
-    return mesh.copy().apply_transform(T)
+    return T
+
+
+def rotate_mesh(mesh: trimesh.Trimesh, R: np.ndarray) -> trimesh.Trimesh:
+    return mesh.copy().apply_transform(_homogeneous(R))
 
 
 def record_config(cfg: DatasetConfig) -> dict:
@@ -229,9 +233,7 @@ def records(source: Source, mesh: trimesh.Trimesh, ann: Annotation, cfg: Dataset
     for r in sorted(todo):
         R = rotation(cfg, source.name, r)
         grid = sdf_mod.build_sdf(rotate_mesh(mesh, R), cfg.grasp.sdf)
-        T = np.eye(4)
-        T[:3, :3] = R
-        poses = T[None] @ ann.grasps["wrist_pose"]
+        poses = _homogeneous(R)[None] @ ann.grasps["wrist_pose"]
         rng = np.random.default_rng(object_seed(cfg.seed, source.name, r, 2))
         yield dataset_io.Record.create(
             object_name=source.name, mesh_sha256=source.sha256, rotation_index=r, rotation=R, split=source.split,

@@ -689,6 +689,15 @@ def _stack(batch: list) -> dict[str, np.ndarray]:
             "grasp": np.array([g for _, g in batch], dtype=np.int64)}
 
 
+_QUANTILES = {"min": 0.0, "q05": 0.05, "q25": 0.25, "median": 0.5, "q75": 0.75, "q95": 0.95, "max": 1.0}
+
+
+def quantiles(x) -> dict | None:
+    """{min, q05, q25, median, q75, q95, max, mean} of a 1-D array, or None when it is empty."""
+    x = np.asarray(x, np.float64)
+    return ({k: float(np.quantile(x, v)) for k, v in _QUANTILES.items()} | {"mean": float(x.mean())}) if x.size else None
+
+
 def summary(path: str | Path) -> dict:
     """Counts and quality statistics of a dataset file (streams; keeps one float per grasp)."""
     path = Path(path)
@@ -714,11 +723,9 @@ def summary(path: str | Path) -> dict:
                 physics[k][0] += int(ga[k].sum())
                 physics[k][1] += int(ga[k].size)
     e = np.concatenate(eps) if eps else np.zeros(0)
-    qs = {"min": 0.0, "q05": 0.05, "q25": 0.25, "median": 0.5, "q75": 0.75, "q95": 0.95, "max": 1.0}
     return {"version": None if config is None else config.get("version"),
             "records": n_records, "objects": len(per_object), "grasps": int(e.size),
             "grasps_per_object": dict(sorted(per_object.items())), "splits": dict(sorted(splits.items())),
-            "epsilon": ({k: float(np.quantile(e, v)) for k, v in qs.items()} | {"mean": float(e.mean())})
-            if e.size else None,
+            "epsilon": quantiles(e),
             **{f"{k}_rate": (p / n if n else None) for k, (p, n) in physics.items()},
             **{f"{k}_evaluated": n for k, (p, n) in physics.items()}}

@@ -18,14 +18,6 @@ import numpy as np
 from ffcgs_jax import dataset_io
 from ffcgs_jax.errors import FfcgsError
 
-_QS = {"min": 0.0, "q05": 0.05, "q25": 0.25, "median": 0.5, "q75": 0.75, "q95": 0.95, "max": 1.0}
-
-
-def _quantiles(x: np.ndarray) -> dict | None:
-    x = np.asarray(x, np.float64)
-    return ({k: float(np.quantile(x, v)) for k, v in _QS.items()} | {"mean": float(x.mean())}) if x.size else None
-
-
 def _icosahedron_face_centres() -> np.ndarray:
     import trimesh
 
@@ -97,8 +89,8 @@ def stats(path: str | Path) -> dict:
         "file": str(path), "version": config.get("version"), "records": n_records, "objects": len(per_object),
         "grasps": int(sum(o["grasps"] for o in per_object.values())),
         "splits": {k: {**v, "objects": len(v["objects"])} for k, v in sorted(splits.items())},
-        "epsilon": _quantiles(cat_all(eps)), "epsilon_pos_fraction": float((cat_all(eps) > 0).mean()) if eps else None,
-        "E_g": _quantiles(cat_all(E_g)), "E_c_cm": _quantiles(cat_all(E_c) * 100),
+        "epsilon": dataset_io.quantiles(cat_all(eps)), "epsilon_pos_fraction": float((cat_all(eps) > 0).mean()) if eps else None,
+        "E_g": dataset_io.quantiles(cat_all(E_g)), "E_c_cm": dataset_io.quantiles(cat_all(E_c) * 100),
         "physics": {"tested": tested, "passed_both": passed, "pass_rate": passed / tested if tested else None},
         "categories": dict(sorted(cat.items())),
         "diversity": {"resultant_median": float(np.median([o["resultant"] for o in div])) if div else None,
@@ -150,11 +142,11 @@ def _find_mesh(name: str, sha256: str, config: dict, objects_dir: Path | None):
 
     if name.startswith("proc_"):
         mesh = procedural.shape(int(config.get("seed", 0)), int(name.split("_")[1]))[1]
-        return mesh if dataset_build._mesh_sha256(mesh) == sha256 else None
+        return mesh if dataset_build.mesh_sha256(mesh) == sha256 else None
     if objects_dir is None:
         return None
     for p in sorted(objects_dir.glob(f"{name}.*")):
-        if p.suffix.lower() in dataset_build.MESH_SUFFIXES and dataset_build._file_sha256(p) == sha256:
+        if p.suffix.lower() in dataset_build.MESH_SUFFIXES and dataset_build.file_sha256(p) == sha256:
             return mesh_io.load_mesh(p)
     return None
 

@@ -112,7 +112,7 @@ def synthesize(hand: Hand, mesh: trimesh.Trimesh, cfg: GraspConfig = GraspConfig
                q: np.ndarray | None = None) -> GraspSet:
     """Sample `cfg.n` wrist poses on the object (or take `poses`, (B, 4, 4), object frame), optimise the fingers,
     filter and evaluate the grasps. `q` (B, Q), only with `poses`, starts the descent there instead of at the open
-    hand (the annotation planner passes its annealed channels)."""
+    hand (the annotation planner does not: see `planner.plan` for why)."""
     check_all(cfg)  # nested configs too: an unknown optim.method must not silently fall back
     if grid is None:
         grid = sdf_mod.build_sdf(mesh, cfg.sdf)

@@ -131,8 +131,8 @@ def plan(hand: Hand, mesh: trimesh.Trimesh, cfg: PlannerConfig = PlannerConfig()
 
     The refinement restarts the fingers from the open hand rather than from the annealed channels: on the box and
     the mug (512 annealed, best 128 refined) that gave 76 and 73 valid grasps, 34 and 49 with epsilon > 0, against
-    42 and 50 (14 and 20 with epsilon > 0) from the annealed channels, whose closed fingers let the wrist settle where the open hand
-    collides. The annealing's job is the wrist pose."""
+    42 and 50 (14 and 20 with epsilon > 0) from the annealed channels, whose closed fingers let the wrist settle
+    where the open hand collides. The annealing's job is the wrist pose."""
     cfg.check()
     check_all(grasp_cfg)
     if grid is None:
