@@ -1,7 +1,7 @@
 """Grasp quality per sampler and method, on the built-in objects and the YCB test split (Table I / II style).
 
     python bench/eval_grasp.py [--ycb ../shared/objects/ycb] [--n 32] [--methods ours,paper] [--samplers geometric,random]
-        [--save DIR]   # keep the grasps for bench/eval_physics.py
+        [--iters 50] [--weights W.npz] [--save DIR]   # keep the grasps for bench/eval_physics.py
 
 For every object, sampler and method (ours = the package defaults; paper = configs/paper.toml, Algorithm 1 as
 published) it synthesises n grasps and reports: share of valid grasps, share of valid grasps with epsilon > 0 (force
@@ -11,6 +11,7 @@ signed-rank test compares the samplers' per-object median E as the paper does.
 """
 
 import argparse
+import dataclasses
 import json
 import time
 from pathlib import Path
@@ -20,7 +21,7 @@ from tqdm import tqdm
 
 from ffcgs_jax import kinematics as K
 from ffcgs_jax import grasp_io, mesh_io, metrics, objects
-from ffcgs_jax.config import EnergyConfig, OptimConfig
+from ffcgs_jax.config import EnergyConfig, OptimConfig, SamplerConfig
 from ffcgs_jax.grasp import GraspConfig, synthesize
 
 REPO = Path(__file__).resolve().parents[1]
@@ -49,7 +50,10 @@ def run(args) -> list[dict]:
         if name not in meshes:
             meshes[name] = mesh_io.load_mesh(src)
         energy, optim = METHODS[method]
-        cfg = GraspConfig(n=args.n, sampler=sampler, seed=args.seed, energy=energy, optim=optim)
+        if args.iters:
+            optim = dataclasses.replace(optim, iters=args.iters)
+        cfg = GraspConfig(n=args.n, sampler=sampler, seed=args.seed, energy=energy, optim=optim,
+                          sampling=SamplerConfig(weights=args.weights))
         gs = synthesize(hand, meshes[name], cfg, name)
         if args.save:  # the grasps themselves, for bench/eval_physics.py
             Path(args.save).mkdir(parents=True, exist_ok=True)
@@ -61,6 +65,7 @@ def run(args) -> list[dict]:
             "fc": int((a["epsilon"][v] > 0).sum()), "E": med("E"), "E_g": med("E_g"), "E_c_cm": med("E_c", 100),
             "pen_mm": med("penetration", 1000), "eps": med("epsilon"),
             "E_all": float(np.median(a["E"])), "E_g_all": float(np.median(a["E_g"])),
+            "E_mean_all": float(np.mean(a["E"])), "E_g_mean_all": float(np.mean(a["E_g"])),
             "synthesis_s": float(a["synthesis_s"]), "compile_s": float(a["compile_s"]),
         })
     return rows
@@ -75,8 +80,8 @@ def report(rows: list[dict]) -> None:
               f"{r['synthesis_s']:.2f} |")
     print()
     print("| method | sampler | objects | valid share | eps>0 share of valid | median E | median E_g | median E_c (cm) "
-          "| median E (all) | median E_g (all) |")
-    print("|---|---|---|---|---|---|---|---|---|---|")
+          "| median E (all) | median E_g (all) | mean E (all) | mean E_g (all) |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|")
     keys = sorted({(r["method"], r["sampler"]) for r in rows})
     for m, s in keys:
         rs = [r for r in rows if r["method"] == m and r["sampler"] == s]
@@ -84,14 +89,18 @@ def report(rows: list[dict]) -> None:
         md = lambda k: np.nanmedian([r[k] for r in rs])  # noqa: E731
         print(f"| {m} | {s} | {len(rs)} | {nv / sum(r['n'] for r in rs):.1%} | "
               f"{sum(r['fc'] for r in rs) / max(nv, 1):.1%} | {md('E'):.3f} | {md('E_g'):.3f} | {md('E_c_cm'):.2f} | "
-              f"{md('E_all'):.3f} | {md('E_g_all'):.3f} |")
+              f"{md('E_all'):.3f} | {md('E_g_all'):.3f} | {np.mean([r['E_mean_all'] for r in rs]):.3f} | "
+              f"{np.mean([r['E_g_mean_all'] for r in rs]):.3f} |")
+    samplers = sorted({r["sampler"] for r in rows})
     for m in sorted({r["method"] for r in rows}):
-        a = [r["E_all"] for r in rows if r["method"] == m and r["sampler"] == "geometric"]
-        b = [r["E_all"] for r in rows if r["method"] == m and r["sampler"] == "random"]
-        if len(a) == len(b) and len(a) > 1:
-            stat, p = metrics.wilcoxon(np.array(a), np.array(b))
-            print(f"\nWilcoxon signed-rank, {m}: per-object median E (all poses), geometric vs random: "
-                  f"statistic {stat:.1f}, p = {p:.2g} over {len(a)} objects")
+        for i, s1 in enumerate(samplers):
+            for s2 in samplers[i + 1:]:
+                a = [r["E_all"] for r in rows if r["method"] == m and r["sampler"] == s1]
+                b = [r["E_all"] for r in rows if r["method"] == m and r["sampler"] == s2]
+                if len(a) == len(b) and len(a) > 1:
+                    stat, p = metrics.wilcoxon(np.array(a), np.array(b))
+                    print(f"\nWilcoxon signed-rank, {m}: per-object median E (all poses), {s1} vs {s2}: "
+                          f"statistic {stat:.1f}, p = {p:.2g} over {len(a)} objects")
     for s in sorted({r["sampler"] for r in rows}):
         a = [r["E_all"] for r in rows if r["method"] == "ours" and r["sampler"] == s]
         b = [r["E_all"] for r in rows if r["method"] == "paper" and r["sampler"] == s]
@@ -111,6 +120,8 @@ def main():
     ap.add_argument("--json", help="also write the rows to this JSON file")
     ap.add_argument("--every-file", action="store_true", help="--ycb holds only the test split: take every file")
     ap.add_argument("--save", help="also write each run's grasps to DIR/OBJECT__METHOD__SAMPLER.npz")
+    ap.add_argument("--iters", type=int, default=0, help="optimiser iterations for every method (0: each method's)")
+    ap.add_argument("--weights", default="", help="cvae sampler weights (default: the shipped ones)")
     args = ap.parse_args()
     t0 = time.perf_counter()
     rows = run(args)

@@ -192,11 +192,17 @@ class SamplerConfig:
         oversample: "geometric": candidates drawn per requested pose before the collision and palm-up filters.
             About 6 % pass on the built-in mug (its cavity and the table reject most) and 34 % on the box, so
             32 leaves about twice the poses needed on the mug; raise it for objects with little free surface.
+        cvae_oversample: "cvae": latent samples decoded per requested pose; the ones passing the pose filters are
+            kept first (see `samplers.sample_cvae`).
+        weights: "cvae": the weights file (`weights.npz` from `python -m train.sampler`); "" uses the weights
+            shipped in the package for the hand.
     """
 
     translation_scale: float = 2.0
     standoff: float = 0.05
     oversample: int = 32
+    cvae_oversample: int = 4
+    weights: str = ""
 
     def check(self) -> None:
         for name, lo, hi in (("translation_scale", 0.0, 100.0), ("standoff", 0.0, 1.0)):
@@ -205,6 +211,10 @@ class SamplerConfig:
                 raise FfcgsError(f"sampler.{name} must be a number in ({lo}, {hi}], got {v!r}")
         if not (isinstance(self.oversample, int) and 1 <= self.oversample <= 4096):
             raise FfcgsError(f"sampler.oversample must be an integer in [1, 4096], got {self.oversample!r}")
+        _integer("sampler.cvae_oversample", self.cvae_oversample, 1, 4096)
+        if not isinstance(self.weights, str):
+            raise FfcgsError(f"sampler.weights must be a file path (or \"\" for the shipped weights), got "
+                             f"{self.weights!r}")
 
 
 # ----------------------------------------------------------------------------------------------------------------
@@ -212,7 +222,7 @@ class SamplerConfig:
 # ----------------------------------------------------------------------------------------------------------------
 
 
-SAMPLERS = ("geometric", "random")  # the names `samplers.CORES` implements
+SAMPLERS = ("cvae", "geometric", "random")  # the names `samplers.CORES` implements
 
 
 @dataclasses.dataclass(frozen=True)
@@ -221,7 +231,7 @@ class GraspConfig:
 
     Attributes:
         n: wrist poses sampled and optimised as one batch.
-        sampler: "geometric" or "random" (Table I's baselines); the learned sampler plugs in later.
+        sampler: "cvae" (the learned sampler), "geometric" or "random" (Table I's baselines).
         seed: PRNG seed of the sampler.
         max_penetration: a grasp whose hand collision spheres reach deeper than this into the object (metres) is
             not valid. 1 cm, as the physics test's initial-penetration rule; the paper does not check this.

@@ -157,6 +157,8 @@ def record_config(cfg: DatasetConfig) -> dict:
     for k in ("objects", "out", "shard", "annotate"):
         d.pop(k)
     d["physics"].pop("workers")
+    for k in ("cvae_oversample", "weights"):  # the planner samples geometric poses: cvae settings do not matter
+        d["grasp"]["sampling"].pop(k)
     return d
 
 

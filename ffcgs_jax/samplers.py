@@ -3,7 +3,8 @@
 A sampler is a function `sample(key, sdf, n) -> (n, 4, 4)` wrist poses (world <- hand root), built by
 `make_sampler(name, hand, cfg)`. Each draws from `jax.random` only, so a key fixes its output, and runs as one
 jit-compiled function per n (n is static); calling `sample` inside an outer `jax.jit` works too (with n static).
-The learned sampler plugs into the same interface.
+
+- "cvae": the learned sampler of the paper (`cvae.py`), weights shipped in the package (`weights_path`).
 
 - "random": palm centre uniform in a box around the object, rotation uniform on SO(3); no filtering (section
   V.A.1: the optimiser's filters flag the bad ones).
@@ -12,7 +13,8 @@ The learned sampler plugs into the same interface.
 """
 
 from collections.abc import Callable
-from functools import partial
+from functools import lru_cache, partial
+from pathlib import Path
 from typing import NamedTuple
 
 import jax
@@ -20,6 +22,7 @@ import jax.numpy as jnp
 import mujoco
 import numpy as np
 
+from ffcgs_jax import cvae
 from ffcgs_jax import filters as F
 from ffcgs_jax import sdf as S
 from ffcgs_jax.config import SAMPLERS, SamplerConfig
@@ -81,8 +84,8 @@ def palm_facing_pose(
     return _pose(R, palm_world - R @ palm_root)
 
 
-def palm_centre_root(hand: Hand) -> np.ndarray:
-    """The palm centre (the palm site at q = 0) in the hand's root frame, host NumPy (3,).
+def root_frame_sites(hand: Hand, site_ids) -> np.ndarray:
+    """Positions of MuJoCo sites at q = 0 in the hand's root frame, host NumPy (len(site_ids), 3).
 
     Computed with MuJoCo C on the host: one call at sampler construction, where tracing MJX would cost seconds.
     """
@@ -91,7 +94,17 @@ def palm_centre_root(hand: Hand) -> np.ndarray:
     d.qpos[:] = 0.0  # q = 0, as the FK's qpos = coupling @ q
     mujoco.mj_kinematics(m, d)
     root_inv = np.asarray(hand.root_inv, np.float64)
-    return root_inv[:3, :3] @ d.site_xpos[hand.palm_site_id] + root_inv[:3, 3]
+    return d.site_xpos[np.asarray(site_ids)] @ root_inv[:3, :3].T + root_inv[:3, 3]
+
+
+def palm_centre_root(hand: Hand) -> np.ndarray:
+    """The palm centre (the palm site at q = 0) in the hand's root frame, host NumPy (3,)."""
+    return root_frame_sites(hand, [hand.palm_site_id])[0]
+
+
+def tetrahedron_root(hand: Hand) -> np.ndarray:
+    """The 4 palm-tetrahedron sites (the sampler's pose loss) in the hand's root frame, host NumPy (4, 3)."""
+    return root_frame_sites(hand, list(hand.tetrahedron_site_ids))
 
 
 # ----------------------------------------------------------------------------------------------------------------
@@ -157,13 +170,13 @@ def surface_points(
 
 def sample_random(
     hand: Hand, palm_root: Float[Array, " 3"], key: jax.Array, sdf: GradientSDF, n: int, cfg: SamplerConfig,
-    filters: F.FilterConfig = F.FilterConfig(),
+    filters: F.FilterConfig = F.FilterConfig(), params: dict | None = None,
 ) -> Float[Array, "B 4 4"]:
     """Table I's random baseline: palm centre uniform in the scaled bounding box, rotation uniform on SO(3).
 
     A normalised 4-D Gaussian is uniform on the unit quaternions, hence its rotation uniform on SO(3).
     """
-    del hand, filters  # same signature as the other samplers; random poses are not filtered (the paper's baseline)
+    del hand, filters, params  # same signature as the other samplers; random poses are not filtered (the paper's)
     k_t, k_q = jax.random.split(key)
     lo, hi = bounding_box(sdf)
     centre, half = (lo + hi) / 2, cfg.translation_scale * (hi - lo) / 2
@@ -217,16 +230,31 @@ def geometric_candidates(
     p, n = surface_points(k_p, sdf, m, -f.palm_up_max)
     theta = jax.random.uniform(k_s, (m,), dtype=p.dtype, maxval=2 * jnp.pi)
     poses = jax.vmap(palm_facing_pose, (None, None, 0, 0, 0))(hand, palm_root, p + cfg.standoff * n, n, theta)
+    valid, violation = pose_verdicts(hand, sdf, poses, f)
+    return Candidates(poses, p, n, valid, violation)
+
+
+def pose_verdicts(hand: Hand, sdf: GradientSDF, poses: Float[Array, "M 4 4"],
+                  filters: F.FilterConfig) -> tuple[Bool[Array, " M"], Float[Array, " M"]]:
+    """Whether each pose passes the pose filters of Algorithm 1, and by how much it misses them (see Candidates)."""
+    f = filters
     clearance = F.pose_clearance_batch(hand, sdf, poses)
     up = jnp.einsum("bij,j->bi", poses[:, :3, :3], hand.palm_normal)[:, 2]
     valid = ~F.pose_collides_batch(hand, sdf, poses, f) & ~F.palm_up_batch(hand, poses, f)
     violation = jax.nn.relu(f.clearance - clearance) + jax.nn.relu(up - f.palm_up_max)
-    return Candidates(poses, p, n, valid, jnp.where(valid, 0.0, violation))
+    return valid, jnp.where(valid, 0.0, violation)
+
+
+def _valid_first(poses: Float[Array, "M 4 4"], valid: Bool[Array, " M"], violation: Float[Array, " M"],
+                 n: int) -> Float[Array, "B 4 4"]:
+    """The first n valid poses in draw order, then the invalid ones by increasing violation (fixed shapes)."""
+    order = jnp.argsort(jnp.where(valid, -1.0, violation), stable=True)
+    return poses[order[:n]]
 
 
 def sample_geometric(
     hand: Hand, palm_root: Float[Array, " 3"], key: jax.Array, sdf: GradientSDF, n: int, cfg: SamplerConfig,
-    filters: F.FilterConfig = F.FilterConfig(),
+    filters: F.FilterConfig = F.FilterConfig(), params: dict | None = None,
 ) -> Float[Array, "B 4 4"]:
     """The first n valid of oversample * n geometric candidates, topped up with the least violating invalid ones.
 
@@ -234,15 +262,36 @@ def sample_geometric(
     invalid candidates that miss the filters by the least (see `Candidates.violation`), so callers that need
     only valid poses re-check them with `filters`.
     """
+    del params
     c = geometric_candidates(hand, palm_root, key, sdf, cfg.oversample * n, cfg, filters)
-    # Valid ones sort first in draw order (stable sort on a constant key), then the invalid ones by violation.
-    order = jnp.argsort(jnp.where(c.valid, -1.0, c.violation), stable=True)
-    return c.poses[order[:n]]
+    return _valid_first(c.poses, c.valid, c.violation, n)
 
 
-# The cores by name, (hand, palm_root, key, sdf, n, cfg, filters) -> (n, 4, 4): for pipelines that jit around them (no
+def sample_cvae(
+    hand: Hand, palm_root: Float[Array, " 3"], key: jax.Array, sdf: GradientSDF, n: int, cfg: SamplerConfig,
+    filters: F.FilterConfig = F.FilterConfig(), params: dict | None = None,
+) -> Float[Array, "B 4 4"]:
+    """The learned sampler (`cvae.py`): cvae_oversample * n poses decoded from z ~ N(0, I), valid ones first.
+
+    The network rarely proposes a colliding pose, but a few per object do; drawing a few more than needed and
+    keeping the ones that pass the pose filters costs one batched decoder call (the U-Net runs once).
+    `params` are the network's weights (`cvae_train.load_weights`); the latent size is read from their shapes.
+    """
+    if params is None:
+        raise FfcgsError("the cvae sampler needs its weights (params=...)")
+    latent = params["decoder"]["conv0"]["w"].shape[-2] - params["unet"]["up1"]["w"].shape[-1]
+    res = sdf.grid.shape[0]
+    centre, half = cvae.grid_frame(sdf.origin, sdf.voxel_size, res)
+    m = cfg.cvae_oversample * n
+    g = cvae.sample_vectors(params, sdf.grid, half, key, m, latent)
+    poses = jax.vmap(cvae.vector_to_pose, (0, None, None, None))(g.astype(sdf.grid.dtype), palm_root, centre, half)
+    valid, violation = pose_verdicts(hand, sdf, poses, filters)
+    return _valid_first(poses, valid, violation, n)
+
+
+# The cores by name, (hand, palm_root, key, sdf, n, cfg, filters, params) -> (n, 4, 4): for pipelines that jit around them (no
 # host checks; palm_root from `palm_centre_root`). `make_sampler` wraps one with the checks and its own jit.
-CORES = {"random": sample_random, "geometric": sample_geometric}
+CORES = {"random": sample_random, "geometric": sample_geometric, "cvae": sample_cvae}
 assert sorted(CORES) == sorted(SAMPLERS), "config.SAMPLERS must name the samplers implemented here"
 
 
@@ -260,10 +309,10 @@ def make_sampler(
     here (one compilation per n); it is deterministic for a fixed key.
 
     Args:
-        name: "random" or "geometric" (see the module docstring).
+        name: "random", "geometric" or "cvae" (see the module docstring).
         hand: from `kinematics.load_hand`.
-        cfg: sampler options, checked here.
-        filters: thresholds of the pose filters the geometric sampler applies (default: the paper's).
+        cfg: sampler options, checked here (`cfg.weights`: the cvae's weights file, "" for the shipped ones).
+        filters: thresholds of the pose filters the geometric and cvae samplers apply (default: the paper's).
     Returns:
         The sampler function.
     """
@@ -272,26 +321,65 @@ def make_sampler(
     cfg.check()
     filters.check()
     palm_root = jnp.asarray(palm_centre_root(hand))
+    params, res = sampler_params(name, hand, cfg)
     core = jax.jit(partial(CORES[name], cfg=cfg, filters=filters), static_argnames="n")
 
     def sample(key: jax.Array, sdf: GradientSDF, n: int) -> Float[Array, "B 4 4"]:
         if isinstance(n, bool) or not isinstance(n, (int, np.integer)) or n < 1:
             raise FfcgsError(f"n (number of wrist poses) must be an integer >= 1, got {n!r}")
-        _check_sdf(sdf)
-        return core(hand, palm_root, key, sdf, n=int(n))
+        _check_sdf(sdf, res)
+        return core(hand, palm_root, key, sdf, n=int(n), params=params)
 
     sample.__name__ = sample.__qualname__ = f"sample_{name}"
     return sample
 
 
-def _check_sdf(sdf: GradientSDF) -> None:
-    """Host checks of the grid: shape always; a surface to sample when the values are concrete."""
+def weights_path(hand: Hand, weights: str = "") -> Path:
+    """The cvae weights file: `weights` if given, else the one shipped for this hand."""
+    if weights:
+        return Path(weights)
+    path = Path(__file__).parent / "assets" / "weights" / f"cvae_{hand.spec.name}.npz"
+    if not path.is_file():
+        raise FfcgsError(f"no cvae weights ship for hand {hand.spec.name!r}; train them (python -m train.sampler) "
+                         f"and pass the weights.npz as sampling.weights")
+    return path
+
+
+@lru_cache(maxsize=8)
+def _load(path: str, mtime: float, hand_name: str):
+    from ffcgs_jax.cvae_train import load_weights  # training code is only imported when weights are needed
+
+    return load_weights(path, hand_name)
+
+
+def sampler_params(name: str, hand: Hand, cfg: SamplerConfig) -> tuple[dict | None, int | None]:
+    """(params, SDF resolution they expect) for the cvae sampler, loaded once per file; (None, None) otherwise."""
+    if name != "cvae":
+        return None, None
+    path = weights_path(hand, cfg.weights)
+    if not path.is_file():
+        raise FfcgsError(f"cvae weights file not found: {path}")
+    params, model = _load(str(path), path.stat().st_mtime, hand.spec.name)
+    return params, model.res
+
+
+def _check_sdf(sdf: GradientSDF, res: int | None = None) -> None:
+    """Host checks of the grid: shape always (and the resolution `res` if given); a surface to sample when the
+    values are concrete."""
     g = sdf.grid
     if g.ndim != 4 or g.shape[-1] != 4 or not g.shape[0] == g.shape[1] == g.shape[2] >= 2:
         raise FfcgsError(f"sdf.grid must have shape (R, R, R, 4) with R >= 2, got {tuple(g.shape)}")
+    check_resolution(g.shape[0], res)
     if isinstance(g, jax.core.Tracer):
         return  # under an outer jit the values are unknown; the cores stay finite on empty grids
     d = np.asarray(g[..., 0])
     h = float(sdf.voxel_size)
     if not np.any(np.abs(d) < h) or not np.any(d <= 0.5 * h):
         raise FfcgsError("the SDF has no voxel on or inside the object surface; is it empty?")
+
+
+def check_resolution(res: int, want: int | None) -> None:
+    """The cvae's features are learned at one SDF resolution: refuse another rather than sample from nonsense."""
+    if want is not None and res != want:
+        raise FfcgsError(f"the cvae sampler's weights were trained on {want}^3 SDFs, this one is {res}^3; "
+                         f"set sdf.res = {want} (--res {want})")

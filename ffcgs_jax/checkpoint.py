@@ -1,0 +1,71 @@
+"""Pytrees of arrays to and from `.npz` files, without pickle: nested dicts of arrays are flattened to
+"a/b/c" keys, and a JSON metadata dict rides along as a uint8 array under "__meta__".
+
+Loading uses `np.load(allow_pickle=False)`, so a checkpoint cannot run code; writes are atomic (temporary file,
+then rename), so an interrupted save leaves the previous checkpoint intact.
+"""
+
+import json
+import os
+from pathlib import Path
+
+import numpy as np
+
+from ffcgs_jax.errors import FfcgsError
+
+_META = "__meta__"
+
+
+def flatten(tree: dict, prefix: str = "") -> dict[str, np.ndarray]:
+    """{"a": {"b": x}} -> {"a/b": x}; leaves become host numpy arrays. Keys must be strings without "/"."""
+    out = {}
+    for k, v in tree.items():
+        if not isinstance(k, str) or "/" in k or not k:
+            raise FfcgsError(f"checkpoint keys must be non-empty strings without '/', got {k!r}")
+        if isinstance(v, dict):
+            out.update(flatten(v, f"{prefix}{k}/"))
+        else:
+            out[prefix + k] = np.asarray(v)
+    return out
+
+
+def unflatten(flat: dict[str, np.ndarray]) -> dict:
+    tree: dict = {}
+    for key, v in flat.items():
+        *path, leaf = key.split("/")
+        node = tree
+        for p in path:
+            node = node.setdefault(p, {})
+        node[leaf] = v
+    return tree
+
+
+def save(path: str | Path, tree: dict, meta: dict | None = None) -> Path:
+    """Write `tree` (nested dicts of arrays) and `meta` (JSON-serialisable) to `path` atomically."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    flat = flatten(tree)
+    flat[_META] = np.frombuffer(json.dumps(meta or {}, sort_keys=True).encode(), np.uint8)
+    tmp = path.with_name(path.name + ".tmp")
+    with open(tmp, "wb") as f:
+        np.savez(f, **flat)
+        f.flush()
+        os.fsync(f.fileno())
+    os.replace(tmp, path)
+    return path
+
+
+def load(path: str | Path) -> tuple[dict, dict]:
+    """(tree, meta) from a file written by `save`."""
+    path = Path(path)
+    if not path.is_file():
+        raise FfcgsError(f"checkpoint file not found: {path}")
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            flat = {k: z[k] for k in z.files}
+    except (ValueError, OSError, EOFError) as e:
+        raise FfcgsError(f"{path} is not a readable .npz checkpoint: {e}") from None
+    if _META not in flat:
+        raise FfcgsError(f"{path} is not an ffcgs checkpoint (no {_META} entry)")
+    meta = json.loads(flat.pop(_META).tobytes().decode())
+    return unflatten(flat), meta
