@@ -26,11 +26,16 @@ def main() -> None:
     ap.add_argument("--runs", type=int, default=20)
     ap.add_argument("--weights", default="", help="cvae weights (default: the shipped ones)")
     ap.add_argument("--samplers", default="cvae,geometric,random")
+    ap.add_argument("--cvae-oversample", default="", help="comma list: also time the cvae at these oversamplings")
     args = ap.parse_args()
     hand = K.load_hand("svh")
     cfg = SamplerConfig(weights=args.weights)
     names = args.samplers.split(",")
     fns = {s: samplers.make_sampler(s, hand, cfg) for s in names}
+    for k in filter(None, args.cvae_oversample.split(",")):
+        names.append(f"cvae x{k}")
+        fns[names[-1]] = samplers.make_sampler("cvae", hand, SamplerConfig(weights=args.weights,
+                                                                           cvae_oversample=int(k)))
     rows = []
     for obj in objects.names():
         grid = sdf.build_sdf(mesh_io.load_mesh(obj), SDFConfig(res=32))

@@ -53,7 +53,7 @@ def run(args) -> list[dict]:
         if args.iters:
             optim = dataclasses.replace(optim, iters=args.iters)
         cfg = GraspConfig(n=args.n, sampler=sampler, seed=args.seed, energy=energy, optim=optim,
-                          sampling=SamplerConfig(weights=args.weights))
+                          sampling=SamplerConfig(weights=args.weights, cvae_oversample=args.cvae_oversample))
         gs = synthesize(hand, meshes[name], cfg, name)
         if args.save:  # the grasps themselves, for bench/eval_physics.py
             Path(args.save).mkdir(parents=True, exist_ok=True)
@@ -122,6 +122,8 @@ def main():
     ap.add_argument("--save", help="also write each run's grasps to DIR/OBJECT__METHOD__SAMPLER.npz")
     ap.add_argument("--iters", type=int, default=0, help="optimiser iterations for every method (0: each method's)")
     ap.add_argument("--weights", default="", help="cvae sampler weights (default: the shipped ones)")
+    ap.add_argument("--cvae-oversample", type=int, default=SamplerConfig().cvae_oversample,
+                    help="cvae candidates decoded per pose (sampling.cvae_oversample)")
     args = ap.parse_args()
     t0 = time.perf_counter()
     rows = run(args)

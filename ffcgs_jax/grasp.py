@@ -47,11 +47,12 @@ class DeviceConfig(NamedTuple):
 
 
 def _device_part(hand: Hand, target: Target, key: jax.Array, given: jax.Array | None, cfg: DeviceConfig,
-                 n: int, given_q: jax.Array | None = None, sampler_params: dict | None = None) -> DeviceOut:
+                 n: int, given_q: jax.Array | None = None, sampler_params: dict | None = None,
+                 sampler_res: int | None = None) -> DeviceOut:
     if given is None:
         palm_root = K.forward_kinematics(hand, jnp.eye(4, dtype=hand.lower.dtype), jnp.zeros_like(hand.lower)).palm_pos
         poses = samplers.CORES[cfg.sampler](hand, palm_root, key, target.sdf, n, cfg.sampling, cfg.filters,
-                                            params=sampler_params)
+                                            params=sampler_params, res=sampler_res)
     else:
         poses = given
     opt = _optimize(hand, target, poses, cfg.energy, cfg.optim, given_q)
@@ -70,19 +71,19 @@ def _device_part(hand: Hand, target: Target, key: jax.Array, given: jax.Array | 
     )
 
 
-_device_jit = jax.jit(_device_part, static_argnames=("cfg", "n"))
+_device_jit = jax.jit(_device_part, static_argnames=("cfg", "n", "sampler_res"))
 _COMPILED: dict = {}
 
 
 def _compiled(hand: Hand, target: Target, key: jax.Array, given, dcfg: DeviceConfig, n: int, given_q=None,
-              sampler_params=None):
+              sampler_params=None, sampler_res=None):
     """Ahead-of-time compiled device part, cached like jit's own cache (AOT compiles bypass that cache), so that
     compile time can be reported apart and a second object of the same grid size reuses the executable."""
     shapes = jax.tree.map(lambda x: (x.shape, x.dtype), (target, key, given, given_q, sampler_params))
-    k = (hand.spec, dcfg, n, str(shapes), jax.default_backend())
+    k = (hand.spec, dcfg, n, str(shapes), sampler_res, jax.default_backend())
     if k not in _COMPILED:
         _COMPILED[k] = _device_jit.lower(hand, target, key, given, cfg=dcfg, n=n, given_q=given_q,
-                                         sampler_params=sampler_params).compile()
+                                         sampler_params=sampler_params, sampler_res=sampler_res).compile()
     return _COMPILED[k]
 
 
@@ -146,14 +147,13 @@ def compile_device(hand: Hand, target: Target, cfg: GraspConfig, given: jax.Arra
     seconds its compilation took (0 when cached). For benchmarks: time `run` apart from host-side evaluation."""
     n = cfg.n if given is None else given.shape[0]
     dcfg = DeviceConfig(cfg.sampler if given is None else "given", cfg.sampling, cfg.energy, cfg.optim, cfg.filters)
-    params = None
+    params, res = None, None
     if given is None:
         params, res = samplers.sampler_params(cfg.sampler, hand, cfg.sampling)
-        samplers.check_resolution(target.sdf.grid.shape[0], res)
         params = jax.tree.map(lambda x: x.astype(target.sdf.grid.dtype), params)
     key0 = jax.random.PRNGKey(0)
     t0 = time.perf_counter()
-    compiled = _compiled(hand, target, key0, given, dcfg, n, given_q, params)
+    compiled = _compiled(hand, target, key0, given, dcfg, n, given_q, params, res)
     return (lambda key: compiled(hand, target, key, given, given_q=given_q, sampler_params=params)), \
         time.perf_counter() - t0
 

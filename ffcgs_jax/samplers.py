@@ -170,13 +170,13 @@ def surface_points(
 
 def sample_random(
     hand: Hand, palm_root: Float[Array, " 3"], key: jax.Array, sdf: GradientSDF, n: int, cfg: SamplerConfig,
-    filters: F.FilterConfig = F.FilterConfig(), params: dict | None = None,
+    filters: F.FilterConfig = F.FilterConfig(), params: dict | None = None, res: int | None = None,
 ) -> Float[Array, "B 4 4"]:
     """Table I's random baseline: palm centre uniform in the scaled bounding box, rotation uniform on SO(3).
 
     A normalised 4-D Gaussian is uniform on the unit quaternions, hence its rotation uniform on SO(3).
     """
-    del hand, filters, params  # same signature as the other samplers; random poses are not filtered (the paper's)
+    del hand, filters, params, res  # the samplers share one signature; random poses are not filtered (the paper's)
     k_t, k_q = jax.random.split(key)
     lo, hi = bounding_box(sdf)
     centre, half = (lo + hi) / 2, cfg.translation_scale * (hi - lo) / 2
@@ -254,7 +254,7 @@ def _valid_first(poses: Float[Array, "M 4 4"], valid: Bool[Array, " M"], violati
 
 def sample_geometric(
     hand: Hand, palm_root: Float[Array, " 3"], key: jax.Array, sdf: GradientSDF, n: int, cfg: SamplerConfig,
-    filters: F.FilterConfig = F.FilterConfig(), params: dict | None = None,
+    filters: F.FilterConfig = F.FilterConfig(), params: dict | None = None, res: int | None = None,
 ) -> Float[Array, "B 4 4"]:
     """The first n valid of oversample * n geometric candidates, topped up with the least violating invalid ones.
 
@@ -262,34 +262,36 @@ def sample_geometric(
     invalid candidates that miss the filters by the least (see `Candidates.violation`), so callers that need
     only valid poses re-check them with `filters`.
     """
-    del params
+    del params, res
     c = geometric_candidates(hand, palm_root, key, sdf, cfg.oversample * n, cfg, filters)
     return _valid_first(c.poses, c.valid, c.violation, n)
 
 
 def sample_cvae(
     hand: Hand, palm_root: Float[Array, " 3"], key: jax.Array, sdf: GradientSDF, n: int, cfg: SamplerConfig,
-    filters: F.FilterConfig = F.FilterConfig(), params: dict | None = None,
+    filters: F.FilterConfig = F.FilterConfig(), params: dict | None = None, res: int | None = None,
 ) -> Float[Array, "B 4 4"]:
     """The learned sampler (`cvae.py`): cvae_oversample * n poses decoded from z ~ N(0, I), valid ones first.
 
     The network rarely proposes a colliding pose, but a few per object do; drawing a few more than needed and
     keeping the ones that pass the pose filters costs one batched decoder call (the U-Net runs once).
     `params` are the network's weights (`cvae_train.load_weights`); the latent size is read from their shapes.
+    `res` is the SDF resolution they were trained at: a grid of another resolution is resampled to it for the
+    network (`sdf.resample`); the pose filters still use the grid given.
     """
     if params is None:
         raise FfcgsError("the cvae sampler needs its weights (params=...)")
     latent = params["decoder"]["conv0"]["w"].shape[-2] - params["unet"]["up1"]["w"].shape[-1]
-    res = sdf.grid.shape[0]
-    centre, half = cvae.grid_frame(sdf.origin, sdf.voxel_size, res)
+    net_sdf = sdf if res is None or res == sdf.grid.shape[0] else S.resample(sdf, res)
+    centre, half = cvae.grid_frame(net_sdf.origin, net_sdf.voxel_size, net_sdf.grid.shape[0])
     m = cfg.cvae_oversample * n
-    g = cvae.sample_vectors(params, sdf.grid, half, key, m, latent)
+    g = cvae.sample_vectors(params, net_sdf.grid, half, key, m, latent)
     poses = jax.vmap(cvae.vector_to_pose, (0, None, None, None))(g.astype(sdf.grid.dtype), palm_root, centre, half)
     valid, violation = pose_verdicts(hand, sdf, poses, filters)
     return _valid_first(poses, valid, violation, n)
 
 
-# The cores by name, (hand, palm_root, key, sdf, n, cfg, filters, params) -> (n, 4, 4): for pipelines that jit around them (no
+# The cores by name, (hand, palm_root, key, sdf, n, cfg, filters, params, res) -> (n, 4, 4): for pipelines that jit around them (no
 # host checks; palm_root from `palm_centre_root`). `make_sampler` wraps one with the checks and its own jit.
 CORES = {"random": sample_random, "geometric": sample_geometric, "cvae": sample_cvae}
 assert sorted(CORES) == sorted(SAMPLERS), "config.SAMPLERS must name the samplers implemented here"
@@ -322,12 +324,12 @@ def make_sampler(
     filters.check()
     palm_root = jnp.asarray(palm_centre_root(hand))
     params, res = sampler_params(name, hand, cfg)
-    core = jax.jit(partial(CORES[name], cfg=cfg, filters=filters), static_argnames="n")
+    core = jax.jit(partial(CORES[name], cfg=cfg, filters=filters, res=res), static_argnames="n")
 
     def sample(key: jax.Array, sdf: GradientSDF, n: int) -> Float[Array, "B 4 4"]:
         if isinstance(n, bool) or not isinstance(n, (int, np.integer)) or n < 1:
             raise FfcgsError(f"n (number of wrist poses) must be an integer >= 1, got {n!r}")
-        _check_sdf(sdf, res)
+        _check_sdf(sdf)
         return core(hand, palm_root, key, sdf, n=int(n), params=params)
 
     sample.__name__ = sample.__qualname__ = f"sample_{name}"
@@ -363,13 +365,11 @@ def sampler_params(name: str, hand: Hand, cfg: SamplerConfig) -> tuple[dict | No
     return params, model.res
 
 
-def _check_sdf(sdf: GradientSDF, res: int | None = None) -> None:
-    """Host checks of the grid: shape always (and the resolution `res` if given); a surface to sample when the
-    values are concrete."""
+def _check_sdf(sdf: GradientSDF) -> None:
+    """Host checks of the grid: shape always; a surface to sample when the values are concrete."""
     g = sdf.grid
     if g.ndim != 4 or g.shape[-1] != 4 or not g.shape[0] == g.shape[1] == g.shape[2] >= 2:
         raise FfcgsError(f"sdf.grid must have shape (R, R, R, 4) with R >= 2, got {tuple(g.shape)}")
-    check_resolution(g.shape[0], res)
     if isinstance(g, jax.core.Tracer):
         return  # under an outer jit the values are unknown; the cores stay finite on empty grids
     d = np.asarray(g[..., 0])
@@ -377,9 +377,3 @@ def _check_sdf(sdf: GradientSDF, res: int | None = None) -> None:
     if not np.any(np.abs(d) < h) or not np.any(d <= 0.5 * h):
         raise FfcgsError("the SDF has no voxel on or inside the object surface; is it empty?")
 
-
-def check_resolution(res: int, want: int | None) -> None:
-    """The cvae's features are learned at one SDF resolution: refuse another rather than sample from nonsense."""
-    if want is not None and res != want:
-        raise FfcgsError(f"the cvae sampler's weights were trained on {want}^3 SDFs, this one is {res}^3; "
-                         f"set sdf.res = {want} (--res {want})")

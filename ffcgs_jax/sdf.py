@@ -202,6 +202,19 @@ def query(sdf: GradientSDF, points: Float[Array, "P 3"]) -> tuple[Float[Array, "
     return jax.vmap(_query_one, (None, 0))(sdf, points)
 
 
+def resample(sdf: GradientSDF, res: int) -> GradientSDF:
+    """The same cube sampled at `res`^3 voxel centres (distance and gradient from `query`); for a consumer that needs
+    one resolution, such as the cvae sampler. `res` is static. Resampling at the grid's own resolution returns the
+    stored values (up to renormalised gradients)."""
+    r0 = sdf.grid.shape[0]
+    h = sdf.voxel_size * r0 / res
+    origin = sdf.origin - sdf.voxel_size / 2 + h / 2
+    ijk = jnp.stack(jnp.meshgrid(*(jnp.arange(res),) * 3, indexing="ij"), -1).reshape(-1, 3)
+    d, g = query(sdf, origin[None, :] + h * ijk.astype(origin.dtype))
+    grid = jnp.concatenate([d[:, None], g], axis=1).reshape(res, res, res, 4).astype(sdf.grid.dtype)
+    return GradientSDF(grid, origin, h, sdf.table_z)
+
+
 @jax.custom_jvp
 def _distance_one(sdf: GradientSDF, p):
     return _query_one(sdf, p)[0]

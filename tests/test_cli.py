@@ -80,7 +80,10 @@ def test_shipped_configs_load(path):
     import tomllib
 
     data = tomllib.loads(path.read_text())
-    cls = {"sdf": cli.SdfCmd, "hand": cli.HandCmd, "grasp": cli.GraspCmd, "paper": cli.GraspCmd}[path.stem.split("_")[0]]
+    from ffcgs_jax.train_config import TrainConfig
+
+    cls = {"sdf": cli.SdfCmd, "hand": cli.HandCmd, "grasp": cli.GraspCmd, "paper": cli.GraspCmd,
+           "sampler": TrainConfig}[path.stem.split("_")[0]]
     assert cli.from_dict(cls, data) is not None
 
 

@@ -598,7 +598,7 @@ def test_dataset_info_counts_json_and_gallery(capsys, main_build, objects_dir, t
 def test_synthesize_start_channels(main_build, hand, tip_distance):
     # The build's grasp config and 8 poses: the q=None run reuses the planner's compiled refinement.
     gcfg = main_build["cfg"].grasp
-    assert gcfg == GraspConfig(sdf=SDFConfig(res=16))
+    assert gcfg == GraspConfig(sampler="geometric", sdf=SDFConfig(res=16))
     mesh = mesh_io.load_mesh("box")
     grid = sdf_mod.build_sdf(mesh, gcfg.sdf)
     pcfg = main_build["cfg"].planner

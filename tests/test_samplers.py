@@ -58,8 +58,8 @@ def assert_rigid(poses) -> None:
 
 
 def test_names_and_unknown_name(hand):
-    assert SM.names() == ["geometric", "random"]
-    with pytest.raises(FfcgsError, match="unknown sampler 'learned'.*valid names: geometric, random"):
+    assert SM.names() == ["cvae", "geometric", "random"]
+    with pytest.raises(FfcgsError, match="unknown sampler 'learned'.*valid names: cvae, geometric, random"):
         SM.make_sampler("learned", hand)
 
 

@@ -55,13 +55,13 @@ def test_data_split_by_object_and_batches(toy):
 
 
 def test_tiny_training_lowers_the_loss(toy, tmp_path):
-    cfg = config(toy, tmp_path / "run", optim=TrainOptimConfig(lr=3e-3, batch=8, epochs=6), kl=dataclasses.replace(
+    cfg = config(toy, tmp_path / "run", optim=TrainOptimConfig(lr=3e-3, batch=8, epochs=5), kl=dataclasses.replace(
         TrainConfig().kl, beta_max=0.0))
     summary = cvae_train.train(cfg, progress=False)
     steps, epochs = cvae_train.read_metrics(tmp_path / "run" / "metrics.jsonl")
     first, last = steps[0]["rec"], np.mean([r["rec"] for r in steps[-3:]])
     assert last < 0.8 * first, (first, last)
-    assert len(epochs) == 6 and all("val_rec" in r for r in epochs)
+    assert len(epochs) == 5 and all("val_rec" in r for r in epochs)
     for name in ("config.toml", "metrics.png", "checkpoint.npz", "weights.npz", "summary.json"):
         assert (tmp_path / "run" / name).is_file(), name
     assert load(TrainConfig, tmp_path / "run" / "config.toml") == cfg  # the resolved config reloads to itself
@@ -115,23 +115,36 @@ def _script(args, cwd):
                           timeout=600)
 
 
-def test_script_sweep_cv_and_errors(toy, tmp_path):
+def test_script_sweep_and_errors(toy, tmp_path):
     r = _script(["--config", str(REPO / "configs" / "sampler.toml"), "--data.path", str(toy), "--out",
                  str(tmp_path / "sw"), "--optim.epochs", "1", "--optim.batch", "8", "--steps_per_call", "4", *TINY,
-                 "--sweep", "optim.lr=1e-3,3e-3", "--cv.all"], REPO)
+                 "--sweep", "optim.lr=1e-3,3e-3"], REPO)
     assert r.returncode == 0, r.stderr[-2000:]
     table = (tmp_path / "sw" / "sweep.md").read_text().splitlines()
     assert len(table) == 4 and "| 0.001 |" in table[2] and "| 0.003 |" in table[3]
     for lr in ("0.001", "0.003"):
-        cv = (tmp_path / "sw" / "sweep" / f"optim.lr={lr}" / "cv.md").read_text()
-        assert sum(line[:3] in {f"| {k}" for k in range(5)} for line in cv.splitlines()) == 5  # one row per fold
-        assert "mean ± std" in cv
+        run = tmp_path / "sw" / "sweep" / f"optim.lr={lr}"
+        assert load(TrainConfig, run / "config.toml").optim.lr == float(lr)
+        assert (run / "weights.npz").is_file()
     r = _script(["--optim.learning_rate", "1"], REPO)
     assert r.returncode != 0 and "learning_rate" in r.stderr and "Traceback" not in r.stderr
     r = _script(["--data.path", str(tmp_path / "missing.mcap"), "--out", str(tmp_path / "m")], REPO)
     assert r.returncode == 2 and "dataset file not found" in r.stderr and "Traceback" not in r.stderr
     r = _script(["--sweep", "optim.nope=1,2"], REPO)
     assert r.returncode == 2 and "unknown sweep key" in r.stderr
+
+
+def test_cross_validation_runs_every_fold(toy, tmp_path):
+    from train.sampler import run_cv
+
+    cfg = config(toy, tmp_path / "cv", optim=TrainOptimConfig(lr=3e-3, batch=8, epochs=1), cv=CVConfig(all=True))
+    out = run_cv(cfg)
+    cv = (tmp_path / "cv" / "cv.md").read_text()
+    assert sum(line[:3] in {f"| {k}" for k in range(5)} for line in cv.splitlines()) == 5  # one row per fold
+    held = [json.loads((tmp_path / "cv" / f"fold{k}" / "summary.json").read_text())["val_objects"] for k in range(5)]
+    assert sorted(sum(held, [])) == [f"toy{i}" for i in range(5)]  # each object validated once
+    assert out["val_rec"] == pytest.approx(np.mean([json.loads((tmp_path / "cv" / f"fold{k}" / "summary.json")
+                                                               .read_text())["val_rec"] for k in range(5)]))
 
 
 # ---------------------------------------------------------------------------------------------------------------
@@ -170,8 +183,9 @@ def test_cvae_sampler_contract(hand, weights32, tmp_path):
                                atol=1e-6)
     np.testing.assert_array_equal(a, np.asarray(sample(jax.random.key(0), grid, 6)))  # a key fixes the output
     assert not np.array_equal(a, np.asarray(sample(jax.random.key(1), grid, 6)))
-    with pytest.raises(FfcgsError, match="trained on 32\\^3 SDFs, this one is 16\\^3"):
-        sample(jax.random.key(0), sdf.build_sdf(mesh_io.load_mesh("box"), SDFConfig(res=16)), 4)
+    # another resolution is resampled to the network's 32^3 (the poses then match those of a 32^3 build closely)
+    b16 = np.asarray(sample(jax.random.key(0), sdf.build_sdf(mesh_io.load_mesh("box"), SDFConfig(res=16)), 6))
+    assert b16.shape == (6, 4, 4) and np.isfinite(b16).all()
     with pytest.raises(FfcgsError, match="weights file not found"):
         samplers.make_sampler("cvae", hand, SamplerConfig(weights=str(tmp_path / "none.npz")))
     np.savez(tmp_path / "other.npz", __meta__=np.frombuffer(b'{"format": "x"}', np.uint8))
@@ -188,3 +202,20 @@ def test_cvae_sampler_in_synthesize(hand, weights32):
                       optim=OptimConfig(iters=2))
     gs = synthesize(hand, mesh_io.load_mesh("box"), cfg, "box")
     assert gs["wrist_pose"].shape == (4, 4, 4) and np.isfinite(gs["E"]).all()
+
+
+def test_resample_same_resolution_is_identity_and_coarse_is_close():
+    from ffcgs_jax import mesh_io, sdf
+    from ffcgs_jax.config import SDFConfig
+
+    mesh = mesh_io.load_mesh("box")
+    g32 = sdf.build_sdf(mesh, SDFConfig(res=32))
+    same = sdf.resample(g32, 32)
+    np.testing.assert_allclose(same.grid[..., 0], g32.grid[..., 0], atol=1e-9)
+    np.testing.assert_allclose(same.origin, g32.origin, atol=1e-12)
+    g16 = sdf.build_sdf(mesh, SDFConfig(res=16))
+    up = sdf.resample(g16, 32)
+    assert up.grid.shape == (32, 32, 32, 4)
+    near = np.abs(np.asarray(g32.grid[..., 0])) < 0.02
+    err = np.abs(np.asarray(up.grid[..., 0]) - np.asarray(g32.grid[..., 0]))[near]
+    assert np.median(err) < 0.1 * float(g16.voxel_size), (np.median(err), float(g16.voxel_size))
