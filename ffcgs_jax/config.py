@@ -63,6 +63,9 @@ class RenderConfig:
             raise FfcgsError(f"render.backend must be one of auto, mujoco, software; got {self.backend!r}")
 
 
+LP_SOLVERS = ("jax", "proxsuite")
+
+
 @dataclasses.dataclass(frozen=True)
 class EnergyConfig:
     """E = E_g + a_c E_c + a_q E_q (+ a_pen P), eq. 5 of the paper.
@@ -78,6 +81,9 @@ class EnergyConfig:
             metres^2, so 1e4 makes a 1 cm deep link cost 1); the paper has none (0): it penalises fingertips only.
         normal_grad: let gradients flow through the contact normals. The paper holds them fixed (dn/dc = 0), which
             leaves E_g only the torques to work with: contacts bunched on one side then cannot spread out.
+        lp_solver: who solves the Q-distance LP: "proxsuite" (a host callback, `lp_host.py`, the reference path)
+            or "jax" (a revised simplex inside the compiled graph, `lp_jax.py`; same values to 1e-9 in float64).
+        lp_pivots: the "jax" solver's pivot budget per LP; a solve that needs more is flagged not ok.
 
     Defaults are this project's method; `configs/paper.toml` sets the paper's (a_pen 0, normal_grad false).
     """
@@ -90,8 +96,13 @@ class EnergyConfig:
     a_q: float = 0.5
     a_pen: float = 1e4
     normal_grad: bool = True
+    lp_solver: str = "proxsuite"
+    lp_pivots: int = 100
 
     def check(self) -> None:
+        if self.lp_solver not in LP_SOLVERS:
+            raise FfcgsError(f"unknown energy.lp_solver {self.lp_solver!r}; solvers: {', '.join(LP_SOLVERS)}")
+        _integer("energy.lp_pivots", self.lp_pivots, 1, 100_000)
         _range("energy.mu", self.mu, 0.0, 2.0)
         _range("energy.cone_edges", self.cone_edges, 3, 64)
         _range("energy.basis_size", self.basis_size, 12, 1024)

@@ -159,6 +159,8 @@ def record_config(cfg: DatasetConfig) -> dict:
     d["physics"].pop("workers")
     for k in ("cvae_oversample", "weights"):  # the planner samples geometric poses: cvae settings do not matter
         d["grasp"]["sampling"].pop(k)
+    for k in ("lp_solver", "lp_pivots"):  # like the backend: the LP paths agree to their tolerance
+        d["grasp"]["energy"].pop(k)
     return d
 
 

@@ -64,7 +64,8 @@ def energy(
     if not cfg.normal_grad:
         n = jax.lax.stop_gradient(n)
     d = sdf.distance(target.sdf, c)  # derivative = the Gradient-SDF's gradient channel, as in eq. 12
-    E_g, ok = quality.q_distance(c, n, target.centre, target.radius, cfg.mu, cfg.cone_edges, cfg.basis_size)
+    E_g, ok = quality.q_distance(c, n, target.centre, target.radius, cfg.mu, cfg.cone_edges, cfg.basis_size,
+                                 cfg.lp_solver, cfg.lp_pivots)
     E_c = contact_energy(d, cfg.d0)
     E_q = joint_energy(hand, q)
     P = F.penetration_penalty(hand, target.sdf, wrist_pose, q) if cfg.a_pen > 0 else jnp.zeros_like(E_c)

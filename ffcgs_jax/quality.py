@@ -24,7 +24,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Bool, Float
 
-from ffcgs_jax import lp_host
+from ffcgs_jax import lp_host, lp_jax
 from ffcgs_jax.metrics import sphere_basis
 
 
@@ -79,11 +79,18 @@ def q_distance(
     mu: float = 0.2,
     m: int = 8,
     K: int = 64,
+    solver: str = "proxsuite",
+    pivots: int = lp_jax.MAX_ITER,
 ) -> tuple[Float[Array, ""], Bool[Array, ""]]:
     """E_g of one grasp (0 = force closure) and whether it is trustworthy. Differentiable in contacts and normals.
 
+    `solver` picks the LP path ("proxsuite": host callback; "jax": in-graph simplex with `pivots` pivots at most).
     `ok` is False when the LP failed, or when a normal is (near) zero: its cone, and so its wrenches, vanish,
     which would put the origin in the hull and fake force closure.
     """
-    value, ok = lp_host.q_distance(primitive_wrenches(contacts, normals, centre, radius, mu, m), basis(K))
+    W = primitive_wrenches(contacts, normals, centre, radius, mu, m)
+    if solver == "jax":
+        value, ok = lp_jax.q_distance(W, basis(K), pivots)
+    else:
+        value, ok = lp_host.q_distance(W, basis(K))
     return value, ok & jnp.all(jnp.sum(normals**2, axis=1) > 1e-12)

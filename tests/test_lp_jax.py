@@ -1,0 +1,122 @@
+"""The in-graph Q-distance LP (`lp_jax.py`) against HiGHS (float64 reference) and the ProxSuite path."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from ffcgs_jax import lp_host, lp_jax, metrics, quality
+
+U = quality.basis(64)
+AXES = lp_jax._axis_columns(U)
+
+
+def wrenches(rng, kind: str) -> np.ndarray:
+    """(6, 40) primitive wrenches of 5 contacts: spread around a sphere, bunched on one side, or all at one point."""
+    c = rng.normal(size=(5, 3))
+    if kind == "oneside":
+        c = np.abs(c) + 0.5
+    elif kind == "coincident":  # degenerate: one contact point repeated, the hull is flat in torque space
+        c = np.tile(c[:1], (5, 1))
+    c = 0.05 * c / np.linalg.norm(c, axis=1, keepdims=True)
+    n = c / np.linalg.norm(c, axis=1, keepdims=True)
+    return np.asarray(quality.primitive_wrenches(jnp.asarray(c), jnp.asarray(n), jnp.zeros(3), 0.05, 0.2, 8))
+
+
+@pytest.fixture(scope="module")
+def instances():
+    rng = np.random.default_rng(0)
+    return np.stack([wrenches(rng, k) for k in ("spread", "oneside", "coincident") for _ in range(20)])
+
+
+@pytest.fixture(scope="module")
+def solved(instances):
+    f = jax.jit(jax.vmap(lambda W: lp_jax.solve(W, jnp.asarray(U), AXES)))
+    return [np.asarray(x) for x in f(jnp.asarray(instances))]
+
+
+def test_float64_values_match_highs_and_proxsuite(instances, solved):
+    value, lam, alpha, ok = solved
+    ref = np.array([metrics.q_distance_reference(W.T, U) for W in instances])
+    assert ok.all()
+    np.testing.assert_allclose(value, ref, atol=1e-9)
+    hv, _, _, hok = lp_host.solve_batch(instances, U)
+    np.testing.assert_allclose(value[hok], hv[hok], atol=1e-6)  # ProxSuite's own accuracy is 1e-7 absolute
+    assert (ref < 1e-9).sum() >= 10 and (ref > 1e-3).sum() >= 10  # both force closure and not are covered
+
+
+def test_solution_is_primal_and_dual_feasible(instances, solved):
+    value, lam, alpha, ok = solved
+    for W, v, l, a in zip(instances, value, lam, alpha):
+        assert a.min() >= 0 and a.sum() == pytest.approx(1.0, abs=1e-9)
+        assert (U.T @ l).max() <= 1 + 1e-9  # dual feasible
+        if v > 1e-9:
+            assert (W.T @ l).min() == pytest.approx(v, abs=1e-9)  # t = min_i w_i . lam at the optimum
+            # primal: the hull point W alpha has gauge v (strong duality), i.e. lam . W alpha = v
+            assert l @ W @ a == pytest.approx(v, abs=1e-9)
+
+
+def test_float32_within_documented_tolerance(instances):
+    f = jax.jit(jax.vmap(lambda W: lp_jax.solve(W, jnp.asarray(U, jnp.float32), AXES)))
+    value, _, _, ok = (np.asarray(x) for x in f(jnp.asarray(instances, jnp.float32)))
+    ref = np.array([metrics.q_distance_reference(W.T, U) for W in instances])
+    assert ok.all()
+    np.testing.assert_allclose(value, ref, atol=1e-5)  # the float32 tolerance in lp_jax's docstring
+
+
+def test_batched_equals_loop(instances, solved):
+    for i in (0, 25, 45):
+        v, lam, alpha, ok = lp_jax.solve(jnp.asarray(instances[i]), jnp.asarray(U), AXES)
+        assert float(v) == pytest.approx(solved[0][i], abs=1e-12)
+        np.testing.assert_allclose(alpha, solved[2][i], atol=1e-12)
+
+
+def test_gradient_matches_proxsuite_path_and_finite_differences(instances):
+    """Both paths' dE_g/dW on instances with a unique optimum (E_g > 0), and central differences of the value."""
+    rng = np.random.default_rng(3)
+    for W in instances[20:25]:  # one-sided: E_g > 0
+        Wj = jnp.asarray(W)
+        g_jax = jax.grad(lambda w: lp_jax.q_distance(w, U)[0])(Wj)
+        g_host = jax.grad(lambda w: lp_host.q_distance(w, U)[0])(Wj)
+        np.testing.assert_allclose(g_jax, g_host, atol=2e-5)  # ProxSuite's duals carry its 1e-7 KKT accuracy
+        d = rng.normal(size=W.shape)
+        eps = 1e-6
+        fd = (metrics.q_distance_reference((W + eps * d).T, U) - metrics.q_distance_reference((W - eps * d).T, U)) / (
+            2 * eps)
+        assert float(jnp.sum(g_jax * d)) == pytest.approx(fd, rel=1e-4, abs=1e-7)
+
+
+def test_pivot_budget_exhausted_is_flagged(instances):
+    v, lam, alpha, ok = lp_jax.solve(jnp.asarray(instances[25]), jnp.asarray(U), AXES, max_iter=1)
+    assert not bool(ok) and np.isfinite(float(v)) and not np.any(alpha) and not np.any(lam)
+
+
+def test_basis_without_axes_is_refused():
+    with pytest.raises(ValueError, match="must contain"):
+        lp_jax._axis_columns(np.ones((6, 12)))
+
+
+def test_quality_q_distance_paths_agree_with_gradients():
+    """`quality.q_distance(..., solver=)` and its gradient wrt the contacts, both paths, on one-sided grasps."""
+    rng = np.random.default_rng(5)
+    for _ in range(3):
+        c = np.abs(rng.normal(size=(5, 3))) + 0.5
+        c = jnp.asarray(0.05 * c / np.linalg.norm(c, axis=1, keepdims=True))
+        n = c / jnp.linalg.norm(c, axis=1, keepdims=True)
+
+        def f(cc, solver):
+            return quality.q_distance(cc, n, jnp.zeros(3), 0.05, 0.2, 8, 64, solver)
+
+        (vj, okj), (vh, okh) = f(c, "jax"), f(c, "proxsuite")
+        assert bool(okj) and bool(okh) and float(vj) == pytest.approx(float(vh), abs=1e-6) and float(vj) > 1e-3
+        gj = jax.grad(lambda cc: f(cc, "jax")[0])(c)
+        gh = jax.grad(lambda cc: f(cc, "proxsuite")[0])(c)
+        np.testing.assert_allclose(gj, gh, atol=1e-4)
+
+
+def test_unknown_solver_is_refused():
+    from ffcgs_jax.config import EnergyConfig
+    from ffcgs_jax.errors import FfcgsError
+
+    with pytest.raises(FfcgsError, match="unknown energy.lp_solver 'highs'; solvers: jax, proxsuite"):
+        EnergyConfig(lp_solver="highs").check()
