@@ -1,12 +1,15 @@
 """Benchmark grasp synthesis: B wrist poses x T iterations, sampling + descent + filters (the device part).
 
     python bench/bench_grasp.py [--object mug] [--batches 32,1024] [--repeats 5] [--methods ours,paper]
+        [--iters 50] [--lp-solvers proxsuite,jax] [--sampler cvae] [--max-proxsuite-batch 1024]
 
 Prints a Markdown table: compile time (first call), median warm time of `--repeats` calls, grasps per second.
 The host-side evaluation (Ferrari-Canny epsilon with Qhull) is not timed: it is a check, not part of synthesis.
 """
 
 import argparse
+import dataclasses
+import itertools
 import platform
 import statistics
 import time
@@ -32,6 +35,10 @@ def main():
     ap.add_argument("--iters", type=int, default=None, help="override both methods' iteration counts")
     ap.add_argument("--repeats", type=int, default=5)
     ap.add_argument("--methods", default="ours,paper")
+    ap.add_argument("--lp-solvers", default="proxsuite,jax")
+    ap.add_argument("--sampler", default=GraspConfig().sampler)
+    ap.add_argument("--max-proxsuite-batch", type=int, default=1 << 30,
+                    help="skip the ProxSuite path above this batch (it is host-bound: minutes per call)")
     args = ap.parse_args()
     hand = K.load_hand("svh")
     mesh = mesh_io.load_mesh(args.object)
@@ -42,8 +49,11 @@ def main():
         energy, optim = METHODS[method]
         if args.iters is not None:
             optim = OptimConfig(**{**optim.__dict__, "iters": args.iters})
-        for b in map(int, args.batches.split(",")):
-            cfg = GraspConfig(n=b, energy=energy, optim=optim)
+        for solver, b in itertools.product(args.lp_solvers.split(","), map(int, args.batches.split(","))):
+            if solver == "proxsuite" and b > args.max_proxsuite_batch:
+                continue
+            cfg = GraspConfig(n=b, sampler=args.sampler, energy=dataclasses.replace(energy, lp_solver=solver),
+                              optim=optim)
             run, compile_s = compile_device(hand, target, cfg)
             times = []
             for i in range(args.repeats + 1):  # the first call warms caches and is dropped
@@ -51,17 +61,17 @@ def main():
                 jax.block_until_ready(run(jax.random.PRNGKey(i)))
                 times.append(time.perf_counter() - t0)
             warm = statistics.median(times[1:])
-            rows.append((method, b, compile_s, warm, b / warm))
+            rows.append((method, solver, b, compile_s, warm, b / warm))
+            print(rows[-1], flush=True)
     dev = jax.devices()[0]
     print(f"device: {dev.platform} ({dev.device_kind}), jax {jax.__version__}, {platform.machine()}; "
-          f"object {args.object} ({len(mesh.faces)} faces), SDF 32^3, geometric sampler, iterations: ours "
-          f"{args.iters or OptimConfig().iters}, paper {args.iters or 50}; "
-          f"LPs on the host CPU (ProxSuite)")
+          f"object {args.object} ({len(mesh.faces)} faces), SDF 32^3, {args.sampler} sampler, iterations: ours "
+          f"{args.iters or OptimConfig().iters}, paper {args.iters or 50}; median of {args.repeats} warm calls")
     print()
-    print("| method | poses B | compile (s) | warm median (s) | grasps/s |")
-    print("|---|---|---|---|---|")
-    for method, b, c, w, r in rows:
-        print(f"| {method} | {b} | {c:.1f} | {w:.3f} | {r:.1f} |")
+    print("| method | LP solver | poses B | compile (s) | warm median (s) | grasps/s |")
+    print("|---|---|---|---|---|---|")
+    for method, solver, b, c, w, r in rows:
+        print(f"| {method} | {solver} | {b} | {c:.1f} | {w:.4f} | {r:.1f} |")
 
 
 if __name__ == "__main__":

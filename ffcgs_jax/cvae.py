@@ -194,7 +194,12 @@ def sample_vectors(params: dict, grid: Float[Array, "R R R 4"], half: Float[Arra
     feats = features(params, normalise_grid(grid, half))
     base = fcn_base(params["decoder"], feats)
     z = jax.random.normal(key, (n, latent), dtype=grid.dtype)
-    return jax.vmap(lambda zz: decode(params, base, zz))(z)
+    # Chunks bound the memory: each candidate's first layer is a full (R/2)^3 x head volume, 0.5 MB at R = 32, so
+    # 65536 poses x 4 candidates at once would need 128 GB.
+    return jax.lax.map(lambda zz: decode(params, base, zz), z, batch_size=_DECODE_CHUNK)
+
+
+_DECODE_CHUNK = 1024
 
 
 def apply(params: dict, grid: Float[Array, "R R R 4"], half: Float[Array, ""], g: Float[Array, "K 9"],
