@@ -1,7 +1,7 @@
 """Grasp quality per sampler and method, on the built-in objects and the YCB test split (Table I / II style).
 
     python bench/eval_grasp.py [--ycb ../shared/objects/ycb] [--n 32] [--methods ours,paper] [--samplers geometric,random]
-        [--iters 50] [--weights W.npz] [--save DIR]   # keep the grasps for bench/eval_physics.py
+        [--iters 50] [--weights W.npz] [--lp-solver jax] [--save DIR]   # keep the grasps for bench/eval_physics.py
 
 For every object, sampler and method (ours = the package defaults; paper = configs/paper.toml, Algorithm 1 as
 published) it synthesises n grasps and reports: share of valid grasps, share of valid grasps with epsilon > 0 (force
@@ -52,6 +52,8 @@ def run(args) -> list[dict]:
         energy, optim = METHODS[method]
         if args.iters:
             optim = dataclasses.replace(optim, iters=args.iters)
+        if args.lp_solver:
+            energy = dataclasses.replace(energy, lp_solver=args.lp_solver)
         cfg = GraspConfig(n=args.n, sampler=sampler, seed=args.seed, energy=energy, optim=optim,
                           sampling=SamplerConfig(weights=args.weights, cvae_oversample=args.cvae_oversample))
         gs = synthesize(hand, meshes[name], cfg, name)
@@ -122,6 +124,7 @@ def main():
     ap.add_argument("--save", help="also write each run's grasps to DIR/OBJECT__METHOD__SAMPLER.npz")
     ap.add_argument("--iters", type=int, default=0, help="optimiser iterations for every method (0: each method's)")
     ap.add_argument("--weights", default="", help="cvae sampler weights (default: the shipped ones)")
+    ap.add_argument("--lp-solver", default="", help="energy.lp_solver for every method (default: each method's)")
     ap.add_argument("--cvae-oversample", type=int, default=SamplerConfig().cvae_oversample,
                     help="cvae candidates decoded per pose (sampling.cvae_oversample)")
     args = ap.parse_args()

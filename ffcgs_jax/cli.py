@@ -496,6 +496,9 @@ def main(argv: list[str] | None = None) -> int:
     warnings.showwarning = _one_line_warning  # a user needs the message, not our source line
     try:
         fn, cmd = parse(argv)
+        from ffcgs_jax import jax_cache  # imports JAX: not before parsing, so --help stays quick
+
+        jax_cache.enable()  # a second run loads its executables from disk (FFCGS_JAX_CACHE=off: compile every time)
         fn(cmd)
     except FfcgsError as e:
         print(f"ffcgs: error: {e}", file=sys.stderr)

@@ -81,8 +81,10 @@ class EnergyConfig:
             metres^2, so 1e4 makes a 1 cm deep link cost 1); the paper has none (0): it penalises fingertips only.
         normal_grad: let gradients flow through the contact normals. The paper holds them fixed (dn/dc = 0), which
             leaves E_g only the torques to work with: contacts bunched on one side then cannot spread out.
-        lp_solver: who solves the Q-distance LP: "proxsuite" (a host callback, `lp_host.py`, the reference path)
-            or "jax" (a revised simplex inside the compiled graph, `lp_jax.py`; same values to 1e-9 in float64).
+        lp_solver: who solves the Q-distance LP: "jax" (a revised simplex inside the compiled graph, `lp_jax.py`)
+            or "proxsuite" (a host callback, `lp_host.py`, the reference path). Same values to 1e-9 in float64;
+            "jax" is the default on every backend because it measured faster on both the 2-core CPU (2.2x at 32
+            grasps) and the H100 (3x at 32, 130x at 1024; bench/RESULTS.md).
         lp_pivots: the "jax" solver's pivot budget per LP; a solve that needs more is flagged not ok.
 
     Defaults are this project's method; `configs/paper.toml` sets the paper's (a_pen 0, normal_grad false).
@@ -96,7 +98,7 @@ class EnergyConfig:
     a_q: float = 0.5
     a_pen: float = 1e4
     normal_grad: bool = True
-    lp_solver: str = "proxsuite"
+    lp_solver: str = "jax"
     lp_pivots: int = 100
 
     def check(self) -> None:

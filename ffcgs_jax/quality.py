@@ -79,7 +79,7 @@ def q_distance(
     mu: float = 0.2,
     m: int = 8,
     K: int = 64,
-    solver: str = "proxsuite",
+    solver: str = "jax",
     pivots: int = lp_jax.MAX_ITER,
 ) -> tuple[Float[Array, ""], Bool[Array, ""]]:
     """E_g of one grasp (0 = force closure) and whether it is trustworthy. Differentiable in contacts and normals.
