@@ -5,6 +5,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
+
 from ffcgs_jax import jax_cache
 
 
@@ -26,6 +28,7 @@ def _grasp(tmp_path, cache: str):
                            "--out", str(tmp_path / "g.npz")], capture_output=True, text=True, timeout=600, env=env)
 
 
+@pytest.mark.slow  # a full CLI compile (~45 s on 2 cores); the default suite keeps the environment logic above
 def test_cli_fills_the_cache(tmp_path):
     cache = tmp_path / "xla"
     r = _grasp(tmp_path, str(cache))
