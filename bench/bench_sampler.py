@@ -48,7 +48,7 @@ def main() -> None:
                 t0 = time.perf_counter()
                 poses = jax.block_until_ready(fns[s](jax.random.key(r + 1), grid, args.n))
                 times.append(time.perf_counter() - t0)
-            ok = ~np.asarray(F.pose_collides_batch(hand, grid, poses)) & ~np.asarray(F.palm_up_batch(hand, poses))
+            ok = np.asarray(samplers.pose_verdicts(hand, grid, poses, F.FilterConfig())[0])
             rows.append((obj, s, compile_s, statistics.median(times), float(ok.mean())))
     dev = jax.devices()[0]
     print(f"backend {jax.default_backend()}, device {dev.device_kind}, jax {jax.__version__}, n = {args.n}, "

@@ -97,9 +97,12 @@ def split(data: TrainData, folds: int, fold: int, seed: int) -> tuple[np.ndarray
 
 
 def steps_per_epoch(data: TrainData, records: np.ndarray, batch: int, per_sdf: int) -> int:
-    """How many batches `epoch_batches` yields (the same every epoch)."""
+    """How many batches `epoch_batches` yields (the same every epoch); refuses a set smaller than one batch."""
     counts = np.bincount(data.record, minlength=len(data.objects))[records]
-    return int(np.sum(-(-counts // per_sdf)) // (batch // per_sdf))
+    steps = int(np.sum(-(-counts // per_sdf)) // (batch // per_sdf))
+    if steps == 0:
+        raise FfcgsError(f"the training set has {int(counts.sum())} grasps, fewer than one batch ({batch})")
+    return steps
 
 
 def epoch_batches(data: TrainData, records: np.ndarray, batch: int, per_sdf: int,
@@ -120,11 +123,9 @@ def epoch_batches(data: TrainData, records: np.ndarray, batch: int, per_sdf: int
         if fill:
             idx = np.concatenate([idx, rng.choice(idx, fill, replace=len(idx) < fill)])
         groups.append(idx.reshape(n_groups, per_sdf))
-    g = np.concatenate(groups) if groups else np.zeros((0, per_sdf), np.int64)
+    steps = steps_per_epoch(data, records, batch, per_sdf)
+    g = np.concatenate(groups)
     g = g[rng.permutation(len(g))]
     per_batch = batch // per_sdf
-    steps = len(g) // per_batch
-    if steps == 0:
-        raise FfcgsError(f"the training set has {len(data.grasps_of(records))} grasps, fewer than one batch ({batch})")
     g = g[: steps * per_batch].reshape(steps, per_batch, per_sdf)
     return data.record[g[:, :, 0]], g

@@ -138,8 +138,12 @@ def _weights_meta(cfg: TrainConfig, hand: str, extra: dict) -> dict:
             "train": {"config": to_toml(cfg)} | extra}
 
 
-def train(cfg: TrainConfig, hand: str = "svh", progress: bool = True, until_epoch: int | None = None) -> dict | None:
+def train(cfg: TrainConfig, hand: str = "svh", progress: bool = True, until_epoch: int | None = None,
+          data: cvae_data.TrainData | None = None) -> dict | None:
     """Train one configuration (one fold); see the module docstring. Returns a summary dict (also in summary.json).
+
+    `data` is `cvae_data.load(cfg.data.path, cfg.data.noisy)` when a caller already holds it (the folds of a
+    cross-validation share one read of the file); None reads it here.
 
     `until_epoch` stops after that many epochs, checkpointed, as an interruption would (time-boxed sessions,
     tests); returns None then, and a later call with the same config continues."""
@@ -152,7 +156,8 @@ def train(cfg: TrainConfig, hand: str = "svh", progress: bool = True, until_epoc
                          f"{cfg_path} or choose another --out")
     cfg_path.write_text(text)
 
-    data = cvae_data.load(cfg.data.path, cfg.data.noisy)
+    if data is None:
+        data = cvae_data.load(cfg.data.path, cfg.data.noisy)
     if data.res != cfg.model.res:
         raise FfcgsError(f"the dataset's SDFs are {data.res}^3 but model.res is {cfg.model.res}")
     train_recs, val_recs = cvae_data.split(data, cfg.cv.folds, cfg.cv.fold, cfg.seed)
@@ -160,9 +165,6 @@ def train(cfg: TrainConfig, hand: str = "svh", progress: bool = True, until_epoc
     palm_root, tet_root = jnp.asarray(palm_root), jnp.asarray(tet_root)
     o, k = cfg.optim, cfg.data.grasps_per_sdf
     steps_per_epoch = cvae_data.steps_per_epoch(data, train_recs, o.batch, k)
-    if steps_per_epoch == 0:
-        raise FfcgsError(f"the training set has {len(data.grasps_of(train_recs))} grasps, fewer than one batch "
-                         f"({o.batch})")
     total = steps_per_epoch * o.epochs
 
     params = cvae.init(jax.random.key(cfg.seed), cfg.model)

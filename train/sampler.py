@@ -19,6 +19,8 @@ from pathlib import Path
 import numpy as np
 import tyro
 
+from ffcgs_jax import cvae_data
+from ffcgs_jax.cli import _split_config
 from ffcgs_jax.config import _coerce, check_all, load
 from ffcgs_jax.cvae_train import train
 from ffcgs_jax.errors import FfcgsError
@@ -27,16 +29,11 @@ from ffcgs_jax.train_config import TrainConfig
 
 def split_args(argv: list[str]) -> tuple[str | None, list[str], list[str]]:
     """(--config path, sweep specs "key=v1,v2", the remaining override flags)."""
-    path, sweep, rest = None, [], []
+    path, argv = _split_config(argv)  # the same --config handling as the `ffcgs` commands
+    sweep, rest = [], []
     i = 0
     while i < len(argv):
-        a = argv[i]
-        if a == "--config" or a.startswith("--config="):
-            path = a.split("=", 1)[1] if "=" in a else (argv[i + 1] if i + 1 < len(argv) else None)
-            if path is None:
-                raise FfcgsError("--config needs a file path")
-            i += 1 if "=" in a else 2
-        elif a == "--sweep":
+        if argv[i] == "--sweep":
             i += 1
             while i < len(argv) and not argv[i].startswith("--"):
                 sweep.append(argv[i])
@@ -44,13 +41,13 @@ def split_args(argv: list[str]) -> tuple[str | None, list[str], list[str]]:
             if not sweep:
                 raise FfcgsError("--sweep needs at least one KEY=V1,V2,... spec")
         else:
-            rest.append(a)
+            rest.append(argv[i])
             i += 1
     return path, sweep, rest
 
 
 def _field(cfg, dotted: str):
-    """(dataclass holding the field, field name, its type) of a dotted key, naming valid keys when unknown."""
+    """The type of the field a dotted key names, naming the valid keys when it names none."""
     *path, name = dotted.split(".")
     obj = cfg
     for p in path:
@@ -93,10 +90,11 @@ def replace(cfg, dotted: str, value):
 def run_cv(cfg: TrainConfig) -> dict:
     """Every fold of cfg.cv in OUT/fold<k>/, then OUT/cv.md; returns the mean summary."""
     rows = []
+    data = cvae_data.load(cfg.data.path, cfg.data.noisy)  # once: the folds differ only in the objects held out
     for k in range(cfg.cv.folds):
         sub = replace(replace(cfg, "cv.fold", k), "out", str(Path(cfg.out) / f"fold{k}"))
         t0 = time.perf_counter()
-        rows.append(train(sub) | {"fold": k, "time_s": time.perf_counter() - t0})
+        rows.append(train(sub, data=data) | {"fold": k, "time_s": time.perf_counter() - t0})
     val = np.array([r["val_rec"] for r in rows])
     lines = ["| fold | validation objects | train grasps | train rec (cm) | val rec (cm) | val KL | time (s) |",
              "|---|---|---|---|---|---|---|"]
