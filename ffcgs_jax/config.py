@@ -251,6 +251,9 @@ class GraspConfig:
             not valid. 1 cm, as the physics test's initial-penetration rule; the paper does not check this.
         max_contact_rms: a grasp whose fingertips are farther than this from the surface, as RMS (E_c, metres), is
             not valid: it does not touch the object. 1 cm lets one finger of five miss by about 2 cm.
+        devices: local accelerators the batch of poses is split over (`jax.sharding`, each device optimises its
+            share independently): 0 = all local devices of JAX's default backend, k = the first k. The results
+            do not depend on it; a batch that does not divide evenly is padded.
     """
 
     n: int = 32
@@ -258,6 +261,7 @@ class GraspConfig:
     seed: int = 0
     max_penetration: float = 0.01
     max_contact_rms: float = 0.01
+    devices: int = 0
     sdf: SDFConfig = SDFConfig()
     energy: EnergyConfig = EnergyConfig()
     optim: OptimConfig = OptimConfig()
@@ -273,6 +277,7 @@ class GraspConfig:
             raise FfcgsError(f"max_penetration must be in [0, 1] m, got {self.max_penetration}")
         if not 0 <= self.max_contact_rms <= 1:
             raise FfcgsError(f"max_contact_rms must be in [0, 1] m, got {self.max_contact_rms}")
+        _integer("devices", self.devices, 0, 4096)
 
 
 PROTOCOLS = ("lift-shake", "six-dir")  # the physics tests `physics.run_protocol` implements

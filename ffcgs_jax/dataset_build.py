@@ -157,6 +157,7 @@ def record_config(cfg: DatasetConfig) -> dict:
     for k in ("objects", "out", "shard", "annotate"):
         d.pop(k)
     d["physics"].pop("workers")
+    d["grasp"].pop("devices")  # where it runs, not what it computes
     for k in ("cvae_oversample", "weights"):  # the planner samples geometric poses: cvae settings do not matter
         d["grasp"]["sampling"].pop(k)
     for k in ("lp_solver", "lp_pivots"):  # like the backend: the LP paths agree to their tolerance

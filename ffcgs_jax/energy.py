@@ -4,7 +4,7 @@ from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
-from jaxtyping import Array, Bool, Float
+from jaxtyping import Array, Bool, Float, Int
 
 from ffcgs_jax import filters as F
 from ffcgs_jax import quality, sdf
@@ -36,6 +36,7 @@ class Terms(NamedTuple):
     P: Float[Array, ""]
     lp_ok: Bool[Array, ""]
     contacts: Float[Array, "C 3"]
+    lp_basis: Int[Array, " 7"]  # the LP's final basis ("jax" solver; -1s otherwise): the next step's warm start
 
 
 def make_target(grid: sdf.GradientSDF) -> Target:
@@ -56,18 +57,20 @@ def joint_energy(hand: Hand, q: Float[Array, " Q"]) -> Float[Array, ""]:
 
 
 def energy(
-    hand: Hand, target: Target, wrist_pose: Float[Array, "4 4"], q: Float[Array, " Q"], cfg: EnergyConfig
+    hand: Hand, target: Target, wrist_pose: Float[Array, "4 4"], q: Float[Array, " Q"], cfg: EnergyConfig,
+    lp_basis: Int[Array, " 7"] | None = None,
 ) -> tuple[Float[Array, ""], Terms]:
-    """E and its parts for one wrist pose and channel vector (differentiable in q)."""
+    """E and its parts for one wrist pose and channel vector (differentiable in q). `lp_basis`: a warm start for
+    the Q-distance LP (`Terms.lp_basis` of a nearby call)."""
     c = contact_points(hand, wrist_pose, q)
     _, n = sdf.query(target.sdf, c)
     if not cfg.normal_grad:
         n = jax.lax.stop_gradient(n)
     d = sdf.distance(target.sdf, c)  # derivative = the Gradient-SDF's gradient channel, as in eq. 12
-    E_g, ok = quality.q_distance(c, n, target.centre, target.radius, cfg.mu, cfg.cone_edges, cfg.basis_size,
-                                 cfg.lp_solver, cfg.lp_pivots)
+    E_g, ok, basis = quality.q_distance_warm(c, n, target.centre, target.radius, cfg.mu, cfg.cone_edges,
+                                             cfg.basis_size, cfg.lp_solver, cfg.lp_pivots, lp_basis)
     E_c = contact_energy(d, cfg.d0)
     E_q = joint_energy(hand, q)
     P = F.penetration_penalty(hand, target.sdf, wrist_pose, q) if cfg.a_pen > 0 else jnp.zeros_like(E_c)
     E = E_g + cfg.a_c * E_c + cfg.a_q * E_q + cfg.a_pen * P
-    return E, Terms(E, E_g, E_c, E_q, P, ok, c)
+    return E, Terms(E, E_g, E_c, E_q, P, ok, c, basis)

@@ -6,6 +6,7 @@ function, compiled ahead of time so its compile time is measured apart from the 
 """
 
 import dataclasses
+import functools
 import time
 from typing import NamedTuple
 
@@ -14,6 +15,8 @@ import jax.numpy as jnp
 import mujoco
 import numpy as np
 import trimesh
+from jax.sharding import Mesh, NamedSharding
+from jax.sharding import PartitionSpec as P
 
 from ffcgs_jax import filters as F
 from ffcgs_jax import kinematics as K
@@ -48,13 +51,31 @@ class DeviceConfig(NamedTuple):
 
 def _device_part(hand: Hand, target: Target, key: jax.Array, given: jax.Array | None, cfg: DeviceConfig,
                  n: int, given_q: jax.Array | None = None, sampler_params: dict | None = None,
-                 sampler_res: int | None = None) -> DeviceOut:
+                 sampler_res: int | None = None, mesh: Mesh | None = None) -> DeviceOut:
     if given is None:
         palm_root = K.forward_kinematics(hand, jnp.eye(4, dtype=hand.lower.dtype), jnp.zeros_like(hand.lower)).palm_pos
         poses = samplers.CORES[cfg.sampler](hand, palm_root, key, target.sdf, n, cfg.sampling, cfg.filters,
                                             params=sampler_params, res=sampler_res)
     else:
         poses = given
+    if mesh is None or mesh.size == 1:
+        return _descend_and_filter(hand, target, poses, given_q, cfg)
+    # Each device optimises its own share: the poses are independent, so shard_map keeps every loop (descent steps,
+    # simplex pivots) local to its device, with no cross-device traffic until the results are gathered.
+    B, d = poses.shape[0], mesh.size
+    pad = lambda x: None if x is None else jnp.concatenate([x, jnp.repeat(x[-1:], (-B) % d, 0)])  # noqa: E731
+    specs = DeviceOut(*[P(_AXIS)] * 7)._replace(
+        opt=OptResult(*[P(_AXIS)] * 6, trace=P(None, _AXIS)))  # the trace is (T+1, B, ...)
+    q_spec = None if given_q is None else P(_AXIS)
+    out = jax.shard_map(functools.partial(_descend_and_filter, cfg=cfg), mesh=mesh,
+                        in_specs=(P(), P(), P(_AXIS), q_spec), out_specs=specs, check_vma=False)(
+        hand, target, pad(poses), pad(given_q))
+    unpad = lambda s, sub: jax.tree.map(lambda x: x[:, :B] if len(s) == 2 else x[:B], sub)  # noqa: E731
+    return jax.tree.map(unpad, specs, out, is_leaf=lambda x: isinstance(x, P))
+
+
+def _descend_and_filter(hand: Hand, target: Target, poses: jax.Array, given_q: jax.Array | None,
+                        cfg: DeviceConfig) -> DeviceOut:
     opt = _optimize(hand, target, poses, cfg.energy, cfg.optim, given_q)
     poses = opt.wrist_pose
     tips = jnp.moveaxis(opt.trace.tips, 1, 0)  # (B, T+1, C, 3)
@@ -71,19 +92,30 @@ def _device_part(hand: Hand, target: Target, key: jax.Array, given: jax.Array | 
     )
 
 
-_device_jit = jax.jit(_device_part, static_argnames=("cfg", "n", "sampler_res"))
+def device_mesh(devices: int = 0) -> Mesh:
+    """A 1-D mesh over the first `devices` local devices of the default backend (0: all of them)."""
+    local = jax.local_devices()
+    if devices > len(local):
+        raise FfcgsError(f"devices = {devices} asked for, but this machine has {len(local)} "
+                         f"{jax.default_backend()} device(s)")
+    return Mesh(np.array(local[:devices or len(local)]), (_AXIS,))
+
+
+_AXIS = "poses"
+_device_jit = jax.jit(_device_part, static_argnames=("cfg", "n", "sampler_res", "mesh"))
 _COMPILED: dict = {}
 
 
 def _compiled(hand: Hand, target: Target, key: jax.Array, given, dcfg: DeviceConfig, n: int, given_q=None,
-              sampler_params=None, sampler_res=None):
+              sampler_params=None, sampler_res=None, mesh=None):
     """Ahead-of-time compiled device part, cached like jit's own cache (AOT compiles bypass that cache), so that
     compile time can be reported apart and a second object of the same grid size reuses the executable."""
     shapes = jax.tree.map(lambda x: (x.shape, x.dtype), (target, key, given, given_q, sampler_params))
-    k = (hand.spec, dcfg, n, str(shapes), sampler_res, jax.default_backend())
+    k = (hand.spec, dcfg, n, str(shapes), sampler_res, jax.default_backend(), mesh)
     if k not in _COMPILED:
         _COMPILED[k] = _device_jit.lower(hand, target, key, given, cfg=dcfg, n=n, given_q=given_q,
-                                         sampler_params=sampler_params, sampler_res=sampler_res).compile()
+                                         sampler_params=sampler_params, sampler_res=sampler_res,
+                                         mesh=mesh).compile()
     return _COMPILED[k]
 
 
@@ -151,9 +183,13 @@ def compile_device(hand: Hand, target: Target, cfg: GraspConfig, given: jax.Arra
     if given is None:
         params, res = samplers.sampler_params(cfg.sampler, hand, cfg.sampling)
         params = jax.tree.map(lambda x: x.astype(target.sdf.grid.dtype), params)
+    mesh = device_mesh(cfg.devices)
+    if mesh.size > 1:  # inputs committed to one device (the hand's, the SDF's) must be on all of the mesh's
+        hand, target, given, given_q, params = jax.device_put((hand, target, given, given_q, params),
+                                                              NamedSharding(mesh, P()))
     key0 = jax.random.PRNGKey(0)
     t0 = time.perf_counter()
-    compiled = _compiled(hand, target, key0, given, dcfg, n, given_q, params, res)
+    compiled = _compiled(hand, target, key0, given, dcfg, n, given_q, params, res, mesh)
     return (lambda key: compiled(hand, target, key, given, given_q=given_q, sampler_params=params)), \
         time.perf_counter() - t0
 

@@ -9,12 +9,18 @@ Its dual is lp_host's: max t s.t. U^T lam <= 1, t <= w_i^T lam, with y = [lam, t
 basis gives the value, lam (the separating direction) and alpha (the hull weights), and the backward pass is the
 same envelope-theorem gradient dE_g/dW = lam alpha^T.
 
-Why a simplex: the LP has 7 rows, so a basis is a 7 x 7 matrix and a pivot costs three 7 x 7 solves. It ends at
-an exact vertex (values agree with HiGHS to rounding), where a first-order method would need thousands of steps
-to reach 1e-6 on the degenerate instances (origin inside the hull) that force closure produces.
+Why a simplex: the LP has 7 rows, so a basis is a 7 x 7 matrix. It ends at an exact vertex (values agree with HiGHS
+to rounding), where a first-order method would need thousands of steps to reach 1e-6 on the degenerate instances
+(origin inside the hull) that force closure produces.
+
+Why an explicit basis inverse: a pivot is then a rank-one update of a 7 x 7 array, elementwise work that XLA fuses
+into a few kernels, where LU factorisations and triangular solves are library calls that cannot fuse (on a GPU
+they made each pivot a dozen tiny launches). The inverse is recomputed from scratch (Gauss-Jordan) every
+`_PIVOTS_PER_TRIP` pivots and for the returned solution, so rounding from the updates cannot build up.
 
 Start without phase 1: U holds +-e_i (`quality.basis`), so {sign(w_0i) e_i for i < 6} plus alpha_0 is a feasible
-basis: rho_i = |w_0i|, alpha_0 = 1.
+basis: rho_i = |w_0i|, alpha_0 = 1. A warm start (`basis0`, the optimal basis of a nearby LP, e.g. the previous
+descent step's) is used instead when it is still primal feasible; it then usually needs no pivot at all.
 
 Pivoting: Dantzig's rule (most negative reduced cost), switching to Bland's rule (lowest index) after
 `_BLAND_AFTER` consecutive degenerate pivots, which rules out cycling. A solve that has not reached optimality
@@ -26,12 +32,14 @@ import functools
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jax.scipy.linalg import lu_factor, lu_solve
 
-from ffcgs_jax.types import Array, Bool, Float
+from ffcgs_jax.types import Array, Bool, Float, Int
 
 MAX_ITER = 100  # pivots; instances of this size took at most about 40 (tests/test_lp_jax.py)
 _BLAND_AFTER = 8
+# Pivots per while-loop trip. On a GPU each trip costs a device-to-host check of the loop condition, so a warm
+# start that is already optimal should finish in one trip; more pivots per trip waste masked work on the CPU.
+_PIVOTS_PER_TRIP = 4
 
 
 def _tol(dtype) -> float:
@@ -51,68 +59,109 @@ def _axis_columns(U: np.ndarray) -> np.ndarray:
     return out
 
 
-def solve(W: Float[Array, "6 N"], U: Float[Array, "6 K"], axes: np.ndarray, max_iter: int = MAX_ITER):
-    """One LP; see the module docstring. Returns (value, lam (6,), alpha (N,), ok). vmap batches it."""
+def inverse(M: Float[Array, "n n"]) -> tuple[Float[Array, "n n"], Float[Array, ""]]:
+    """Gauss-Jordan inverse with partial pivoting, unrolled (n is 7), and the smallest pivot's magnitude: a
+    singular M gives a zero pivot (and a non-finite inverse, which callers must not use)."""
+    n = M.shape[0]
+    rows = jnp.arange(n)
+    A, inv = M, jnp.eye(n, dtype=M.dtype)
+    smallest = jnp.asarray(jnp.inf, M.dtype)
+    for k in range(n):
+        p = jnp.argmax(jnp.where(rows >= k, jnp.abs(A[:, k]), -1.0))
+        perm = jnp.where(rows == k, p, jnp.where(rows == p, k, rows))
+        A, inv = A[perm], inv[perm]
+        piv = A[k, k]
+        smallest = jnp.fmin(smallest, jnp.abs(piv))  # fmin: NaNs after a zero pivot must not hide it
+        piv = jnp.where(piv == 0, 1.0, piv)
+        A_k, inv_k = A[k] / piv, inv[k] / piv
+        f = jnp.where(rows == k, 0.0, A[:, k])
+        A = (A - f[:, None] * A_k[None, :]).at[k].set(A_k)
+        inv = (inv - f[:, None] * inv_k[None, :]).at[k].set(inv_k)
+    return inv, smallest
+
+
+def cold_basis(W: Float[Array, "6 N"], axes: np.ndarray, K: int) -> Int[Array, " 7"]:
+    """The phase-1-free feasible start: sign(w_0i) e_i for the six wrench axes, then alpha_0."""
+    return jnp.concatenate([jnp.where(W[:, 0] >= 0, axes[0], axes[1]), jnp.array([K], jnp.int32)])
+
+
+def solve(W: Float[Array, "6 N"], U: Float[Array, "6 K"], axes: np.ndarray, max_iter: int = MAX_ITER,
+          basis0: Int[Array, " 7"] | None = None):
+    """One LP; see the module docstring. Returns (value, lam (6,), alpha (N,), ok, basis (7,)). vmap batches it.
+
+    `basis0`, optional: a warm-start basis (column indices); used when it is a primal-feasible basis of this LP,
+    otherwise the cold start is. Entries < 0 mean "none"."""
     dt = W.dtype
     K, N = U.shape[1], W.shape[1]
     tol = _tol(dt)
     A = jnp.concatenate([jnp.concatenate([U.astype(dt), -W], 1),
                          jnp.concatenate([jnp.zeros((1, K), dt), jnp.ones((1, N), dt)], 1)], 0)
     c = jnp.concatenate([jnp.ones(K, dt), jnp.zeros(N, dt)])
-    b = jnp.zeros(7, dt).at[6].set(1.0)
-    basis0 = jnp.concatenate([jnp.where(W[:, 0] >= 0, axes[0], axes[1]), jnp.array([K], jnp.int32)])
     cols = jnp.arange(K + N)
+    basis = cold_basis(W, axes, K)
+    if basis0 is not None:
+        basis0 = jnp.asarray(basis0, jnp.int32)
+        inv0, smallest = inverse(A[:, jnp.clip(basis0, 0, K + N - 1)])
+        usable = (jnp.all(basis0 >= 0) & jnp.all(basis0 < K + N) & (smallest > tol)
+                  & jnp.all(inv0[:, 6] >= -tol) & jnp.all(jnp.isfinite(inv0)))
+        basis = jnp.where(usable, basis0, basis)
 
-    def step(state):
+    def pivot(state, Binv):
         basis, it, degenerate, done, ok = state
-        lu = lu_factor(A[:, basis])
-        xB = lu_solve(lu, b)
-        y = lu_solve(lu, c[basis], trans=1)
-        d = c - A.T @ y
-        d = jnp.where(jnp.isin(cols, basis), 0.0, d)
+        xB = jnp.maximum(Binv[:, 6], 0.0)  # B^-1 b with b = e_7
+        y = Binv.T @ c[basis]
+        d = jnp.where(jnp.isin(cols, basis), 0.0, c - A.T @ y)
         neg = d < -tol
         optimal = ~jnp.any(neg)
         enter = jnp.where(degenerate >= _BLAND_AFTER, jnp.argmax(neg), jnp.argmin(d))
-        u = lu_solve(lu, A[:, enter])
+        u = Binv @ A[:, enter]
         pos = u > tol
-        ratio = jnp.where(pos, jnp.maximum(xB, 0.0) / jnp.where(pos, u, 1.0), jnp.inf)
+        ratio = jnp.where(pos, xB / jnp.where(pos, u, 1.0), jnp.inf)
         best = jnp.min(ratio)
         # ties: the lowest basis index leaves (Bland); otherwise the first row attaining the minimum
-        tied = ratio <= best + tol
-        leave = jnp.argmin(jnp.where(tied, basis, K + N))
+        leave = jnp.argmin(jnp.where(ratio <= best + tol, basis, K + N))
         unbounded = ~jnp.any(pos)
-        new_basis = basis.at[leave].set(enter.astype(basis.dtype))
-        stop = optimal | unbounded
-        return (jnp.where(stop, basis, new_basis), it + 1, jnp.where(best <= tol, degenerate + 1, 0),
-                stop, optimal)
+        stop = done | optimal | unbounded | (it >= max_iter)
+        row = Binv[leave] / jnp.where(pos[leave], u[leave], 1.0)
+        new_Binv = (Binv - u[:, None] * row[None, :]).at[leave].set(row)
+        state = (jnp.where(stop, basis, basis.at[leave].set(enter.astype(basis.dtype))),
+                 it + jnp.where(stop, 0, 1), jnp.where(stop, degenerate, jnp.where(best <= tol, degenerate + 1, 0)),
+                 stop, jnp.where(done, ok, optimal))
+        return state, jnp.where(stop, Binv, new_Binv)
+
+    def trip(state):
+        Binv = inverse(A[:, state[0]])[0]  # fresh every trip: no drift from the rank-one updates
+        for _ in range(_PIVOTS_PER_TRIP):
+            state, Binv = pivot(state, Binv)
+        return state
 
     def cond(state):
         _, it, _, done, _ = state
         return ~done & (it < max_iter)
 
-    init = (basis0, jnp.zeros((), jnp.int32), jnp.zeros((), jnp.int32), jnp.zeros((), bool), jnp.zeros((), bool))
-    basis, _, _, _, ok = jax.lax.while_loop(cond, step, init)
-    lu = lu_factor(A[:, basis])
-    xB = jnp.maximum(lu_solve(lu, b), 0.0)
-    y = lu_solve(lu, c[basis], trans=1)
+    init = (basis, jnp.zeros((), jnp.int32), jnp.zeros((), jnp.int32), jnp.zeros((), bool), jnp.zeros((), bool))
+    basis, _, _, _, ok = jax.lax.while_loop(cond, trip, init)
+    Binv = inverse(A[:, basis])[0]
+    xB = jnp.maximum(Binv[:, 6], 0.0)
+    y = Binv.T @ c[basis]
     value = jnp.maximum(y[6], 0.0)
     alpha = jnp.zeros(K + N, dt).at[basis].set(xB)[K:]
     s = jnp.sum(alpha)
     ok = ok & jnp.isfinite(value) & (s > 0.5)
     alpha = jnp.where(ok, alpha / jnp.where(s > 0, s, 1.0), 0.0)
     lam = jnp.where(ok, y[:6], 0.0)
-    return jnp.where(jnp.isfinite(value), value, 0.0), lam, alpha, ok
+    return jnp.where(jnp.isfinite(value), value, 0.0), lam, alpha, ok, basis
 
 
-@functools.partial(jax.custom_vjp, nondiff_argnums=(1, 2))
-def _q_distance(W, U_key, max_iter):
-    value, _, _, ok = _solve_keyed(W, U_key, max_iter)
-    return value, ok
+@functools.partial(jax.custom_vjp, nondiff_argnums=(2, 3))
+def _q_distance(W, basis0, U_key, max_iter):
+    value, _, _, ok, basis = _solve_keyed(W, basis0, U_key, max_iter)
+    return value, ok, basis
 
 
-def _solve_keyed(W, U_key, max_iter):
+def _solve_keyed(W, basis0, U_key, max_iter):
     U, axes = _basis_from_key(*U_key)
-    return solve(W, jnp.asarray(U), axes, max_iter)
+    return solve(W, jnp.asarray(U), axes, max_iter, basis0)
 
 
 @functools.lru_cache(maxsize=8)
@@ -121,26 +170,30 @@ def _basis_from_key(U_bytes: bytes, K: int):
     return U, _axis_columns(U)
 
 
-def _fwd(W, U_key, max_iter):
-    value, lam, alpha, ok = _solve_keyed(W, U_key, max_iter)
-    return (value, ok), (lam, alpha)
+def _fwd(W, basis0, U_key, max_iter):
+    value, lam, alpha, ok, basis = _solve_keyed(W, basis0, U_key, max_iter)
+    return (value, ok, basis), (lam, alpha)
 
 
 def _bwd(U_key, max_iter, res, cts):
     lam, alpha = res
-    g_value, _ = cts
-    return (g_value * lam[:, None] * alpha[None, :],)
+    g_value = cts[0]
+    return g_value * lam[:, None] * alpha[None, :], None
 
 
 _q_distance.defvjp(_fwd, _bwd)
 
 
-def q_distance(W: Float[Array, "6 N"], U: np.ndarray, max_iter: int = MAX_ITER) -> tuple[Float[Array, ""],
-                                                                                          Bool[Array, ""]]:
-    """Q-distance E_g of primitive wrenches W (6, N) in the gauge of basis U (6, K), and a solve flag, in pure JAX.
+def q_distance(W: Float[Array, "6 N"], U: np.ndarray, max_iter: int = MAX_ITER,
+               basis0: Int[Array, " 7"] | None = None) -> tuple[Float[Array, ""], Bool[Array, ""], Int[Array, " 7"]]:
+    """Q-distance E_g of primitive wrenches W (6, N) in the gauge of basis U (6, K), a solve flag and the final
+    basis (pass it back as `basis0` to warm-start a nearby LP), in pure JAX.
 
-    Same contract as `lp_host.q_distance`: differentiable wrt W (reverse mode, dE_g/dW = lam alpha^T); U is a host
-    array fixed per configuration; vmap batches it (the pivots of a batch run in lockstep until all are done).
+    Same contract as `lp_host.q_distance` for the first two outputs: differentiable wrt W (reverse mode,
+    dE_g/dW = lam alpha^T); U is a host array fixed per configuration; vmap batches it (the pivots of a batch run
+    in lockstep until all are done).
     """
     U = np.ascontiguousarray(U, np.float64)
-    return _q_distance(W, (U.tobytes(), U.shape[1]), max_iter)
+    if basis0 is None:
+        basis0 = jnp.full(7, -1, jnp.int32)
+    return _q_distance(W, jnp.asarray(basis0, jnp.int32), (U.tobytes(), U.shape[1]), max_iter)

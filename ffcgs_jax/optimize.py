@@ -60,9 +60,9 @@ def _optimize(hand: Hand, target: Target, poses, energy_cfg: EnergyConfig, optim
     T = optim_cfg.iters
     wrist = optim_cfg.wrist
 
-    def total(H, x):
+    def total(H, x, lp_basis):
         q, xi = x
-        return energy(hand, target, twist_pose(H, xi) if wrist else H, q, energy_cfg)
+        return energy(hand, target, twist_pose(H, xi) if wrist else H, q, energy_cfg, lp_basis)
 
     value_and_grad = jax.vmap(jax.value_and_grad(total, argnums=1, has_aux=True))
     q0 = jnp.zeros_like(hand.lower) if q_start is None else jnp.asarray(q_start, hand.lower.dtype)
@@ -77,8 +77,8 @@ def _optimize(hand: Hand, target: Target, poses, energy_cfg: EnergyConfig, optim
     first, last = (optim_cfg.lr, optim_cfg.lr_end) if adam else (optim_cfg.step, optim_cfg.step_end)
 
     def step(carry, t):
-        x, active, iters, lp_ok, state = carry
-        (_, terms), g = value_and_grad(poses, x)
+        x, active, iters, lp_ok, state, lp_basis = carry
+        (_, terms), g = value_and_grad(poses, x, lp_basis)
         done = (terms.E_g < optim_cfg.eps_g) & (terms.E_c < optim_cfg.eps_c)
         active = active & ~done
         beta = first + (last - first) * t / max(T - 1, 1)
@@ -92,13 +92,17 @@ def _optimize(hand: Hand, target: Target, poses, energy_cfg: EnergyConfig, optim
         q_new = jnp.where(move[:, None], jnp.clip(x[0] + delta[0], hand.lower[None], hand.upper[None]), x[0])
         xi_new = jnp.where(move[:, None] & wrist, x[1] + delta[1], x[1])
         record = (terms.E, terms.E_g, terms.E_c, terms.contacts)
-        return ((q_new, xi_new), active, iters + active, lp_ok & (terms.lp_ok | ~active), state), record
+        return ((q_new, xi_new), active, iters + active, lp_ok & (terms.lp_ok | ~active), state,
+                terms.lp_basis), record
 
     x0 = (q0, xi0)
-    init = (x0, jnp.ones(B, bool), jnp.zeros(B, jnp.int32), jnp.ones(B, bool), adam_init(x0))
-    ((q, xi), active, iters, lp_ok, _), hist = jax.lax.scan(step, init, jnp.arange(T))
+    # each step's LP starts from the previous step's optimal basis: the wrenches move little per step, so it
+    # usually is still optimal and the solve takes no pivot (-1s: no warm start for the first step)
+    init = (x0, jnp.ones(B, bool), jnp.zeros(B, jnp.int32), jnp.ones(B, bool), adam_init(x0),
+            jnp.full((B, 7), -1, jnp.int32))
+    ((q, xi), active, iters, lp_ok, _, lp_basis), hist = jax.lax.scan(step, init, jnp.arange(T))
     poses = jax.vmap(twist_pose)(poses, xi) if wrist else poses
-    _, final = jax.vmap(lambda H, qq: energy(hand, target, H, qq, energy_cfg))(poses, q)
+    _, final = jax.vmap(lambda H, qq, b: energy(hand, target, H, qq, energy_cfg, b))(poses, q, lp_basis)
     trace = Trace(*(jnp.concatenate([h, f[None]], 0) for h, f in
                     zip(hist, (final.E, final.E_g, final.E_c, final.contacts))))
     converged = (final.E_g < optim_cfg.eps_g) & (final.E_c < optim_cfg.eps_c)

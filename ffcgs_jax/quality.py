@@ -22,7 +22,7 @@ import functools
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, Bool, Float
+from jaxtyping import Array, Bool, Float, Int
 
 from ffcgs_jax import lp_host, lp_jax
 from ffcgs_jax.metrics import sphere_basis
@@ -88,9 +88,19 @@ def q_distance(
     `ok` is False when the LP failed, or when a normal is (near) zero: its cone, and so its wrenches, vanish,
     which would put the origin in the hull and fake force closure.
     """
+    value, ok, _ = q_distance_warm(contacts, normals, centre, radius, mu, m, K, solver, pivots)
+    return value, ok
+
+
+def q_distance_warm(contacts, normals, centre, radius, mu: float = 0.2, m: int = 8, K: int = 64,
+                    solver: str = "jax", pivots: int = lp_jax.MAX_ITER, basis0: Int[Array, " 7"] | None = None
+                    ) -> tuple[Float[Array, ""], Bool[Array, ""], Int[Array, " 7"]]:
+    """`q_distance`, plus the LP's final basis, and a warm start from `basis0` (the "jax" solver uses it when it is
+    a feasible basis of this LP, e.g. the previous descent step's). The "proxsuite" path returns -1s."""
     W = primitive_wrenches(contacts, normals, centre, radius, mu, m)
     if solver == "jax":
-        value, ok = lp_jax.q_distance(W, basis(K), pivots)
+        value, ok, final_basis = lp_jax.q_distance(W, basis(K), pivots, basis0)
     else:
         value, ok = lp_host.q_distance(W, basis(K))
-    return value, ok & jnp.all(jnp.sum(normals**2, axis=1) > 1e-12)
+        final_basis = jnp.full(7, -1, jnp.int32)
+    return value, ok & jnp.all(jnp.sum(normals**2, axis=1) > 1e-12), final_basis

@@ -32,7 +32,7 @@ def instances():
 @pytest.fixture(scope="module")
 def solved(instances):
     f = jax.jit(jax.vmap(lambda W: lp_jax.solve(W, jnp.asarray(U), AXES)))
-    return [np.asarray(x) for x in f(jnp.asarray(instances))]
+    return [np.asarray(x) for x in f(jnp.asarray(instances))][:4]
 
 
 def test_float64_values_match_highs_and_proxsuite(instances, solved):
@@ -58,7 +58,7 @@ def test_solution_is_primal_and_dual_feasible(instances, solved):
 
 def test_float32_within_documented_tolerance(instances):
     f = jax.jit(jax.vmap(lambda W: lp_jax.solve(W, jnp.asarray(U, jnp.float32), AXES)))
-    value, _, _, ok = (np.asarray(x) for x in f(jnp.asarray(instances, jnp.float32)))
+    value, _, _, ok, _ = (np.asarray(x) for x in f(jnp.asarray(instances, jnp.float32)))
     ref = np.array([metrics.q_distance_reference(W.T, U) for W in instances])
     assert ok.all()
     np.testing.assert_allclose(value, ref, atol=1e-5)  # the float32 tolerance in lp_jax's docstring
@@ -66,7 +66,7 @@ def test_float32_within_documented_tolerance(instances):
 
 def test_batched_equals_loop(instances, solved):
     for i in (0, 25, 45):
-        v, lam, alpha, ok = lp_jax.solve(jnp.asarray(instances[i]), jnp.asarray(U), AXES)
+        v, lam, alpha, ok, _ = lp_jax.solve(jnp.asarray(instances[i]), jnp.asarray(U), AXES)
         assert float(v) == pytest.approx(solved[0][i], abs=1e-12)
         np.testing.assert_allclose(alpha, solved[2][i], atol=1e-12)
 
@@ -87,8 +87,55 @@ def test_gradient_matches_proxsuite_path_and_finite_differences(instances):
 
 
 def test_pivot_budget_exhausted_is_flagged(instances):
-    v, lam, alpha, ok = lp_jax.solve(jnp.asarray(instances[25]), jnp.asarray(U), AXES, max_iter=1)
+    v, lam, alpha, ok, _ = lp_jax.solve(jnp.asarray(instances[25]), jnp.asarray(U), AXES, max_iter=1)
     assert not bool(ok) and np.isfinite(float(v)) and not np.any(alpha) and not np.any(lam)
+
+
+def test_inverse_matches_numpy_and_flags_singular():
+    rng = np.random.default_rng(7)
+    for _ in range(5):
+        M = rng.normal(size=(7, 7))
+        inv, smallest = lp_jax.inverse(jnp.asarray(M))
+        np.testing.assert_allclose(inv, np.linalg.inv(M), rtol=1e-9, atol=1e-9)
+        assert float(smallest) > 1e-6
+    M[:, 3] = M[:, 1]
+    assert float(lp_jax.inverse(jnp.asarray(M))[1]) < 1e-12
+
+
+def test_warm_start_from_the_optimal_basis_needs_no_pivot(instances):
+    """A warm start at an optimal basis is optimal after zero pivots: with a budget of one pivot, where the cold
+    start fails (test above), it succeeds with the same solution."""
+    W, Uj = jnp.asarray(instances[25]), jnp.asarray(U)
+    v, lam, alpha, ok, basis = jax.jit(lambda W: lp_jax.solve(W, Uj, AXES))(W)
+    vw, lamw, alphaw, okw, basisw = jax.jit(lambda W, b: lp_jax.solve(W, Uj, AXES, max_iter=1, basis0=b))(W, basis)
+    assert bool(ok) and bool(okw)
+    assert float(vw) == pytest.approx(float(v), abs=1e-12)
+    np.testing.assert_allclose(alphaw, alpha, atol=1e-12)
+    np.testing.assert_array_equal(basisw, basis)
+
+
+def test_warm_start_from_a_nearby_lp_gives_the_cold_answer(instances):
+    """The previous step's basis on a perturbed LP (as in the descent), and unusable bases (out of range, singular,
+    repeated columns) which must fall back to the cold start: values equal the cold start's and HiGHS's."""
+    rng = np.random.default_rng(11)
+    solve = jax.jit(lambda W, b0: lp_jax.solve(W, jnp.asarray(U), AXES, basis0=b0))
+    bad = [np.full(7, -1), np.arange(7) + 10_000, np.zeros(7, int), np.array([0, 0, 1, 2, 3, 4, 64])]
+    for W in instances[::6]:
+        basis = solve(jnp.asarray(W), jnp.full(7, -1, jnp.int32))[4]
+        W2 = W + 0.01 * rng.normal(size=W.shape)
+        ref = metrics.q_distance_reference(W2.T, U)
+        for b0 in [basis, *bad]:
+            v, _, alpha, ok, _ = solve(jnp.asarray(W2), jnp.asarray(b0, jnp.int32))
+            assert bool(ok) and float(v) == pytest.approx(ref, abs=1e-9)
+            assert alpha.min() >= 0 and float(alpha.sum()) == pytest.approx(1.0, abs=1e-9)
+
+
+def test_warm_started_q_distance_gradient_matches_cold(instances):
+    W = jnp.asarray(instances[22])
+    basis = lp_jax.q_distance(W, U)[2]
+    g_cold = jax.grad(lambda w: lp_jax.q_distance(w, U)[0])(W)
+    g_warm = jax.grad(lambda w: lp_jax.q_distance(w, U, basis0=basis)[0])(W)
+    np.testing.assert_allclose(g_warm, g_cold, atol=1e-12)
 
 
 def test_basis_without_axes_is_refused():
