@@ -69,6 +69,83 @@ class HandCmd:
     render: RenderConfig = RenderConfig()
 
 
+@dataclasses.dataclass(frozen=True)
+class BenchCmd:
+    """Time grasp synthesis on this machine (latency, throughput, compile, CLI start) and write bench/RESULTS.md.
+
+    Attributes:
+        object: built-in name or mesh file; its Gradient-SDF is built first and not timed.
+        res: the Gradient-SDF's resolution (the paper's 32).
+        iters: descent steps per grasp (the issue's figures: 50).
+        batches: poses per batch, one row each; default 32 1024 8192 65536 on a GPU, 32 256 1024 on a CPU.
+        lp_solvers: LP paths to time ("jax", "proxsuite").
+        max_proxsuite_batch: skip larger batches for the host LP (it is host-bound: about 0.4 ms per LP).
+        devices: device counts to time the "jax" rows with (scaling); default 1, and all local devices when
+            there are several.
+        repeats: warm calls per row; the median is reported.
+        sampler: wrist-pose sampler (cvae, geometric, random).
+        backend: "default" (JAX's choice: the GPU when there is one), "cpu" or "gpu".
+        cli_start: also time a cold and a warm `ffcgs grasp` in fresh processes.
+        results: Markdown file to put this machine's block into ("" = print only).
+        json: also write the report as JSON here.
+    """
+
+    object: str = "mug"
+    res: int = 32
+    iters: int = 50
+    batches: tuple[int, ...] = ()
+    lp_solvers: tuple[str, ...] = ("jax", "proxsuite")
+    max_proxsuite_batch: int = 256
+    devices: tuple[int, ...] = ()
+    repeats: int = 5
+    sampler: str = "cvae"
+    backend: str = "default"
+    cli_start: bool = True
+    results: str = "bench/RESULTS.md"
+    json: str | None = None
+
+    def check(self) -> None:
+        from ffcgs_jax.config import LP_SOLVERS, SAMPLERS
+
+        if self.backend not in ("default", "cpu", "gpu"):
+            raise FfcgsError(f"--backend must be default, cpu or gpu, got {self.backend!r}")
+        if self.sampler not in SAMPLERS:
+            raise FfcgsError(f"unknown sampler {self.sampler!r}; samplers: {', '.join(SAMPLERS)}")
+        for s in self.lp_solvers:
+            if s not in LP_SOLVERS:
+                raise FfcgsError(f"unknown LP solver {s!r}; solvers: {', '.join(LP_SOLVERS)}")
+        if not self.lp_solvers:
+            raise FfcgsError("--lp-solvers needs at least one solver")
+        for name, values, hi in (("batches", self.batches, 1_000_000), ("devices", self.devices, 4096)):
+            if any(isinstance(v, bool) or not 1 <= v <= hi for v in values):
+                raise FfcgsError(f"--{name} must be integers in [1, {hi}], got {' '.join(map(str, values))}")
+        SDFConfig(res=self.res).check()
+        if not 1 <= self.iters <= 100_000 or not 1 <= self.repeats <= 1000:
+            raise FfcgsError(f"--iters and --repeats must be >= 1, got {self.iters} and {self.repeats}")
+
+
+def run_bench(cmd: BenchCmd) -> None:
+    import jax
+
+    from ffcgs_jax import benchmark
+
+    if cmd.backend != "default":  # before JAX starts a backend; "gpu" covers CUDA and ROCm
+        try:
+            jax.config.update("jax_platforms", "cuda,rocm" if cmd.backend == "gpu" else "cpu")
+            jax.devices()
+        except RuntimeError as e:
+            raise FfcgsError(f"--backend {cmd.backend}: JAX found no such device ({str(e).splitlines()[0]})") from None
+    report = benchmark.run(cmd)
+    print()
+    print(benchmark.markdown(report))
+    if cmd.results:
+        benchmark.write_results(cmd.results, report)
+        print(f"wrote {cmd.results} (block '{benchmark.machine_key(report['machine'])}')")
+    if cmd.json:
+        benchmark.save_json(report, cmd.json)
+        print(f"wrote {cmd.json}")
+
+
 def run_objects(cmd: ObjectsCmd) -> None:
     from ffcgs_jax import objects
 
@@ -420,6 +497,7 @@ def run_dataset_info(cmd: DatasetInfoCmd) -> None:
 COMMANDS: dict[str, tuple[type, Callable]] = {
     "grasp": (GraspCmd, run_grasp),
     "eval": (EvalCmd, run_eval),
+    "bench": (BenchCmd, run_bench),
     "objects": (ObjectsCmd, run_objects),
     "sdf": (SdfCmd, run_sdf),
     "hand": (HandCmd, run_hand),

@@ -16,11 +16,15 @@ to rounding), where a first-order method would need thousands of steps to reach 
 Why an explicit basis inverse: a pivot is then a rank-one update of a 7 x 7 array, elementwise work that XLA fuses
 into a few kernels, where LU factorisations and triangular solves are library calls that cannot fuse (on a GPU
 they made each pivot a dozen tiny launches). The inverse is recomputed from scratch (Gauss-Jordan) every
-`_PIVOTS_PER_TRIP` pivots and for the returned solution, so rounding from the updates cannot build up.
+few pivots, which also gives the returned solution, so rounding from the updates cannot build up.
 
 Start without phase 1: U holds +-e_i (`quality.basis`), so {sign(w_0i) e_i for i < 6} plus alpha_0 is a feasible
 basis: rho_i = |w_0i|, alpha_0 = 1. A warm start (`basis0`, the optimal basis of a nearby LP, e.g. the previous
-descent step's) is used instead when it is still primal feasible; it then usually needs no pivot at all.
+descent step's) is used instead when it is still a primal-feasible basis of this LP; after a small move of the
+wrenches it is usually still optimal or a pivot or two away. Where it is not (degenerate vertices, common at force
+closure where E_g = 0, turn slightly infeasible) the solve starts cold. Repairing such bases with dual simplex steps
+was tried: fewer pivots on average, but a longer worst case, and a batch pivots in lockstep, so it measured slower
+(H100, B = 8192: 24k against 42k grasps/s).
 
 Pivoting: Dantzig's rule (most negative reduced cost), switching to Bland's rule (lowest index) after
 `_BLAND_AFTER` consecutive degenerate pivots, which rules out cycling. A solve that has not reached optimality
@@ -28,6 +32,7 @@ within `max_iter` pivots returns ok = False (callers mask it, as for the host pa
 """
 
 import functools
+from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -37,9 +42,11 @@ from ffcgs_jax.types import Array, Bool, Float, Int
 
 MAX_ITER = 100  # pivots; instances of this size took at most about 40 (tests/test_lp_jax.py)
 _BLAND_AFTER = 8
-# Pivots per while-loop trip. On a GPU each trip costs a device-to-host check of the loop condition, so a warm
-# start that is already optimal should finish in one trip; more pivots per trip waste masked work on the CPU.
-_PIVOTS_PER_TRIP = 4
+# Pivots per while-loop trip. On a GPU each trip costs a device-to-host check of the loop condition and a dozen
+# launches: 8 measured 46 ms against 51 ms for 4 and 56 ms for 2 (H100, 32 grasps x 50 steps). On a CPU the pivots
+# a finished batch still runs are wasted work, so fewer.
+_PIVOTS_PER_TRIP = {"cpu": 4}
+_PIVOTS_PER_TRIP_GPU = 8
 
 
 def _tol(dtype) -> float:
@@ -85,12 +92,22 @@ def cold_basis(W: Float[Array, "6 N"], axes: np.ndarray, K: int) -> Int[Array, "
     return jnp.concatenate([jnp.where(W[:, 0] >= 0, axes[0], axes[1]), jnp.array([K], jnp.int32)])
 
 
-def solve(W: Float[Array, "6 N"], U: Float[Array, "6 K"], axes: np.ndarray, max_iter: int = MAX_ITER,
-          basis0: Int[Array, " 7"] | None = None):
-    """One LP; see the module docstring. Returns (value, lam (6,), alpha (N,), ok, basis (7,)). vmap batches it.
+class Solution(NamedTuple):
+    value: Float[Array, ""]  # E_g
+    lam: Float[Array, " 6"]  # the separating direction (dual)
+    alpha: Float[Array, " N"]  # hull weights (primal)
+    ok: Bool[Array, ""]  # optimal within the pivot budget
+    basis: Int[Array, " 7"]  # the final basis: a warm start for a nearby LP
+    pivots: Int[Array, ""]  # pivots taken
 
-    `basis0`, optional: a warm-start basis (column indices); used when it is a primal-feasible basis of this LP,
-    otherwise the cold start is. Entries < 0 mean "none"."""
+
+def solve(W: Float[Array, "6 N"], U: Float[Array, "6 K"], axes: np.ndarray, max_iter: int = MAX_ITER,
+          basis0: Int[Array, " 7"] | None = None) -> Solution:
+    """One LP; see the module docstring. vmap batches it.
+
+    `basis0`, optional: a warm-start basis (column indices), used when it is a primal-feasible basis of this LP
+    (7 distinct in-range columns, non-singular, B^-1 b >= 0), otherwise the cold start is; entries < 0 mean
+    "none"."""
     dt = W.dtype
     K, N = U.shape[1], W.shape[1]
     tol = _tol(dt)
@@ -99,15 +116,19 @@ def solve(W: Float[Array, "6 N"], U: Float[Array, "6 K"], axes: np.ndarray, max_
     c = jnp.concatenate([jnp.ones(K, dt), jnp.zeros(N, dt)])
     cols = jnp.arange(K + N)
     basis = cold_basis(W, axes, K)
+    # the cold basis [[D, -w_0], [0, 1]] (D = diag(+-1)) has the inverse [[D, D w_0], [0, 1]]: no elimination
+    sign = jnp.where(W[:, 0] >= 0, 1.0, -1.0).astype(dt)
+    Binv = jnp.eye(7, dtype=dt).at[:6, :6].set(jnp.diag(sign)).at[:6, 6].set(sign * W[:, 0])
+    cold = (basis, Binv)
     if basis0 is not None:
         basis0 = jnp.asarray(basis0, jnp.int32)
         inv0, smallest = inverse(A[:, jnp.clip(basis0, 0, K + N - 1)])
         usable = (jnp.all(basis0 >= 0) & jnp.all(basis0 < K + N) & (smallest > tol)
                   & jnp.all(inv0[:, 6] >= -tol) & jnp.all(jnp.isfinite(inv0)))
-        basis = jnp.where(usable, basis0, basis)
+        basis, Binv = jnp.where(usable, basis0, basis), jnp.where(usable, inv0, Binv)
 
-    def pivot(state, Binv):
-        basis, it, degenerate, done, ok = state
+    def pivot(state):
+        basis, Binv, it, degenerate, done, ok = state
         xB = jnp.maximum(Binv[:, 6], 0.0)  # B^-1 b with b = e_7
         y = Binv.T @ c[basis]
         d = jnp.where(jnp.isin(cols, basis), 0.0, c - A.T @ y)
@@ -120,28 +141,32 @@ def solve(W: Float[Array, "6 N"], U: Float[Array, "6 K"], axes: np.ndarray, max_
         best = jnp.min(ratio)
         # ties: the lowest basis index leaves (Bland); otherwise the first row attaining the minimum
         leave = jnp.argmin(jnp.where(ratio <= best + tol, basis, K + N))
-        unbounded = ~jnp.any(pos)
-        stop = done | optimal | unbounded | (it >= max_iter)
+        stop = done | optimal | ~jnp.any(pos) | (it >= max_iter)  # no positive u: unbounded (cannot happen)
         row = Binv[leave] / jnp.where(pos[leave], u[leave], 1.0)
         new_Binv = (Binv - u[:, None] * row[None, :]).at[leave].set(row)
-        state = (jnp.where(stop, basis, basis.at[leave].set(enter.astype(basis.dtype))),
-                 it + jnp.where(stop, 0, 1), jnp.where(stop, degenerate, jnp.where(best <= tol, degenerate + 1, 0)),
-                 stop, jnp.where(done, ok, optimal))
-        return state, jnp.where(stop, Binv, new_Binv)
+        return (jnp.where(stop, basis, basis.at[leave].set(enter.astype(basis.dtype))),
+                jnp.where(stop, Binv, new_Binv), it + jnp.where(stop, 0, 1),
+                jnp.where(stop, degenerate, jnp.where(best <= tol, degenerate + 1, 0)),
+                stop, jnp.where(done, ok, optimal))
 
     def trip(state):
-        Binv = inverse(A[:, state[0]])[0]  # fresh every trip: no drift from the rank-one updates
-        for _ in range(_PIVOTS_PER_TRIP):
-            state, Binv = pivot(state, Binv)
-        return state
+        for _ in range(_PIVOTS_PER_TRIP.get(jax.default_backend(), _PIVOTS_PER_TRIP_GPU)):
+            state = pivot(state)
+        basis, Binv, it, degenerate, done, ok = state
+        # a fresh inverse after every trip: no drift from the rank-one updates, and the returned one is exact.
+        # Optimality seen through the updated inverse is confirmed with the fresh one, or the pivots go on.
+        Binv = inverse(A[:, basis])[0]
+        d = jnp.where(jnp.isin(cols, basis), 0.0, c - A.T @ (Binv.T @ c[basis]))
+        confirmed = jnp.all(Binv[:, 6] >= -tol) & jnp.all(d >= -tol)
+        return basis, Binv, it, degenerate, done & (confirmed | (it >= max_iter)), ok & confirmed
 
     def cond(state):
-        _, it, _, done, _ = state
+        _, _, it, _, done, _ = state
         return ~done & (it < max_iter)
 
-    init = (basis, jnp.zeros((), jnp.int32), jnp.zeros((), jnp.int32), jnp.zeros((), bool), jnp.zeros((), bool))
-    basis, _, _, _, ok = jax.lax.while_loop(cond, trip, init)
-    Binv = inverse(A[:, basis])[0]
+    init = (basis, Binv, jnp.zeros((), jnp.int32), jnp.zeros((), jnp.int32), jnp.zeros((), bool),
+            jnp.zeros((), bool))
+    basis, Binv, pivots, _, _, ok = jax.lax.while_loop(cond, trip, init)
     xB = jnp.maximum(Binv[:, 6], 0.0)
     y = Binv.T @ c[basis]
     value = jnp.maximum(y[6], 0.0)
@@ -150,13 +175,13 @@ def solve(W: Float[Array, "6 N"], U: Float[Array, "6 K"], axes: np.ndarray, max_
     ok = ok & jnp.isfinite(value) & (s > 0.5)
     alpha = jnp.where(ok, alpha / jnp.where(s > 0, s, 1.0), 0.0)
     lam = jnp.where(ok, y[:6], 0.0)
-    return jnp.where(jnp.isfinite(value), value, 0.0), lam, alpha, ok, basis
+    return Solution(jnp.where(jnp.isfinite(value), value, 0.0), lam, alpha, ok, basis, pivots)
 
 
 @functools.partial(jax.custom_vjp, nondiff_argnums=(2, 3))
 def _q_distance(W, basis0, U_key, max_iter):
-    value, _, _, ok, basis = _solve_keyed(W, basis0, U_key, max_iter)
-    return value, ok, basis
+    sol = _solve_keyed(W, basis0, U_key, max_iter)
+    return sol.value, sol.ok, sol.basis
 
 
 def _solve_keyed(W, basis0, U_key, max_iter):
@@ -171,8 +196,8 @@ def _basis_from_key(U_bytes: bytes, K: int):
 
 
 def _fwd(W, basis0, U_key, max_iter):
-    value, lam, alpha, ok, basis = _solve_keyed(W, basis0, U_key, max_iter)
-    return (value, ok, basis), (lam, alpha)
+    sol = _solve_keyed(W, basis0, U_key, max_iter)
+    return (sol.value, sol.ok, sol.basis), (sol.lam, sol.alpha)
 
 
 def _bwd(U_key, max_iter, res, cts):

@@ -32,7 +32,7 @@ def instances():
 @pytest.fixture(scope="module")
 def solved(instances):
     f = jax.jit(jax.vmap(lambda W: lp_jax.solve(W, jnp.asarray(U), AXES)))
-    return [np.asarray(x) for x in f(jnp.asarray(instances))][:4]
+    return [np.asarray(x) for x in f(jnp.asarray(instances))][:4]  # value, lam, alpha, ok
 
 
 def test_float64_values_match_highs_and_proxsuite(instances, solved):
@@ -58,7 +58,7 @@ def test_solution_is_primal_and_dual_feasible(instances, solved):
 
 def test_float32_within_documented_tolerance(instances):
     f = jax.jit(jax.vmap(lambda W: lp_jax.solve(W, jnp.asarray(U, jnp.float32), AXES)))
-    value, _, _, ok, _ = (np.asarray(x) for x in f(jnp.asarray(instances, jnp.float32)))
+    value, _, _, ok, _, _ = (np.asarray(x) for x in f(jnp.asarray(instances, jnp.float32)))
     ref = np.array([metrics.q_distance_reference(W.T, U) for W in instances])
     assert ok.all()
     np.testing.assert_allclose(value, ref, atol=1e-5)  # the float32 tolerance in lp_jax's docstring
@@ -66,7 +66,7 @@ def test_float32_within_documented_tolerance(instances):
 
 def test_batched_equals_loop(instances, solved):
     for i in (0, 25, 45):
-        v, lam, alpha, ok, _ = lp_jax.solve(jnp.asarray(instances[i]), jnp.asarray(U), AXES)
+        v, lam, alpha, ok, _, _ = lp_jax.solve(jnp.asarray(instances[i]), jnp.asarray(U), AXES)
         assert float(v) == pytest.approx(solved[0][i], abs=1e-12)
         np.testing.assert_allclose(alpha, solved[2][i], atol=1e-12)
 
@@ -87,7 +87,7 @@ def test_gradient_matches_proxsuite_path_and_finite_differences(instances):
 
 
 def test_pivot_budget_exhausted_is_flagged(instances):
-    v, lam, alpha, ok, _ = lp_jax.solve(jnp.asarray(instances[25]), jnp.asarray(U), AXES, max_iter=1)
+    v, lam, alpha, ok, _, _ = lp_jax.solve(jnp.asarray(instances[25]), jnp.asarray(U), AXES, max_iter=1)
     assert not bool(ok) and np.isfinite(float(v)) and not np.any(alpha) and not np.any(lam)
 
 
@@ -106,8 +106,10 @@ def test_warm_start_from_the_optimal_basis_needs_no_pivot(instances):
     """A warm start at an optimal basis is optimal after zero pivots: with a budget of one pivot, where the cold
     start fails (test above), it succeeds with the same solution."""
     W, Uj = jnp.asarray(instances[25]), jnp.asarray(U)
-    v, lam, alpha, ok, basis = jax.jit(lambda W: lp_jax.solve(W, Uj, AXES))(W)
-    vw, lamw, alphaw, okw, basisw = jax.jit(lambda W, b: lp_jax.solve(W, Uj, AXES, max_iter=1, basis0=b))(W, basis)
+    v, lam, alpha, ok, basis, _ = jax.jit(lambda W: lp_jax.solve(W, Uj, AXES))(W)
+    vw, lamw, alphaw, okw, basisw, pivots = jax.jit(lambda W, b: lp_jax.solve(W, Uj, AXES, max_iter=1, basis0=b))(
+        W, basis)
+    assert int(pivots) == 0
     assert bool(ok) and bool(okw)
     assert float(vw) == pytest.approx(float(v), abs=1e-12)
     np.testing.assert_allclose(alphaw, alpha, atol=1e-12)
@@ -115,8 +117,9 @@ def test_warm_start_from_the_optimal_basis_needs_no_pivot(instances):
 
 
 def test_warm_start_from_a_nearby_lp_gives_the_cold_answer(instances):
-    """The previous step's basis on a perturbed LP (as in the descent), and unusable bases (out of range, singular,
-    repeated columns) which must fall back to the cold start: values equal the cold start's and HiGHS's."""
+    """The previous step's basis on a perturbed LP (as in the descent; used when still primal feasible), and
+    unusable bases (out of range, singular, repeated columns) which must fall back to the cold start: values equal
+    HiGHS's."""
     rng = np.random.default_rng(11)
     solve = jax.jit(lambda W, b0: lp_jax.solve(W, jnp.asarray(U), AXES, basis0=b0))
     bad = [np.full(7, -1), np.arange(7) + 10_000, np.zeros(7, int), np.array([0, 0, 1, 2, 3, 4, 64])]
@@ -125,9 +128,35 @@ def test_warm_start_from_a_nearby_lp_gives_the_cold_answer(instances):
         W2 = W + 0.01 * rng.normal(size=W.shape)
         ref = metrics.q_distance_reference(W2.T, U)
         for b0 in [basis, *bad]:
-            v, _, alpha, ok, _ = solve(jnp.asarray(W2), jnp.asarray(b0, jnp.int32))
+            v, _, alpha, ok, _, _ = solve(jnp.asarray(W2), jnp.asarray(b0, jnp.int32))
             assert bool(ok) and float(v) == pytest.approx(ref, abs=1e-9)
             assert alpha.min() >= 0 and float(alpha.sum()) == pytest.approx(1.0, abs=1e-9)
+
+
+def test_warm_started_descent_of_float32_lps_matches_highs(instances):
+    """A batch of float32 LPs along random walks of the contacts, each step warm-started from the last one's basis
+    (what the descent does): every solve is ok and within the float32 tolerance of HiGHS, and the warm starts
+    take fewer pivots than cold ones."""
+    rng = np.random.default_rng(2)
+    c = rng.normal(size=(16, 5, 3))
+    c[:8] = np.abs(c[:8]) + 0.3  # half one-sided (E_g > 0), half spread (force closure: degenerate vertices)
+    wrench = jax.vmap(lambda c: quality.primitive_wrenches(c, c / jnp.linalg.norm(c, axis=1, keepdims=True),
+                                                           jnp.zeros(3), 0.05, 0.2, 8))
+    solve = jax.jit(jax.vmap(lambda W, b: lp_jax.solve(W, jnp.asarray(U, jnp.float32), AXES, basis0=b)))
+    basis, warm, cold = jnp.full((16, 7), -1, jnp.int32), [], []
+    for t in range(12):
+        c = 0.05 * c / np.linalg.norm(c, axis=-1, keepdims=True)
+        W = wrench(jnp.asarray(c, jnp.float32))
+        sol = solve(W, basis)
+        ref = np.array([metrics.q_distance_reference(np.asarray(w, np.float64).T, U) for w in W])
+        assert bool(sol.ok.all())
+        np.testing.assert_allclose(sol.value, ref, atol=1e-5)
+        if t:
+            warm.append(np.asarray(sol.pivots))
+            cold.append(np.asarray(solve(W, jnp.full((16, 7), -1, jnp.int32)).pivots))
+        basis = sol.basis
+        c = c + 0.002 * rng.normal(size=c.shape)
+    assert np.mean(warm) < 0.7 * np.mean(cold)
 
 
 def test_warm_started_q_distance_gradient_matches_cold(instances):
