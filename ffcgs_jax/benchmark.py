@@ -75,8 +75,10 @@ def machine() -> dict:
         cpu = names[0].strip() if names else cpu
     except OSError:
         pass
-    versions = {"python": platform.python_version()}
-    for pkg in ("ffcgs-jax", "jax", "jaxlib", "mujoco", "mujoco-mjx", "proxsuite"):
+    import ffcgs_jax
+
+    versions = {"python": platform.python_version(), "ffcgs-jax": f"{ffcgs_jax.__version__} ({_git_commit()})"}
+    for pkg in ("jax", "jaxlib", "mujoco", "mujoco-mjx", "proxsuite"):
         try:
             versions[pkg] = metadata.version(pkg)
         except metadata.PackageNotFoundError:
@@ -84,6 +86,16 @@ def machine() -> dict:
     return {"backend": jax.default_backend(), "device": devs[0].device_kind, "device_count": len(devs),
             "host_cpu": cpu, "host_cores": os.cpu_count(), "versions": versions,
             "date": datetime.date.today().isoformat()}
+
+
+def _git_commit() -> str:
+    """The checkout's commit, when the package runs from one (a wheel install has none)."""
+    try:
+        r = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True, timeout=10,
+                           cwd=Path(__file__).parent)
+        return r.stdout.strip() if r.returncode == 0 and r.stdout.strip() else "no git"
+    except (OSError, subprocess.SubprocessError):
+        return "no git"
 
 
 def machine_key(m: dict) -> str:
