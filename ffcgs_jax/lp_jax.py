@@ -154,11 +154,14 @@ def solve(W: Float[Array, "6 N"], U: Float[Array, "6 K"], axes: np.ndarray, max_
             state = pivot(state)
         basis, Binv, it, degenerate, done, ok = state
         # a fresh inverse after every trip: no drift from the rank-one updates, and the returned one is exact.
-        # Optimality seen through the updated inverse is confirmed with the fresh one, or the pivots go on.
+        # Optimality seen through the updated inverse is confirmed with the fresh one (the same test as `pivot`'s,
+        # so a trip that made no pivot always confirms), or the pivots go on; an unconfirmed trip counts against
+        # the budget, so the loop ends whatever rounding does.
         Binv = inverse(A[:, basis])[0]
         d = jnp.where(jnp.isin(cols, basis), 0.0, c - A.T @ (Binv.T @ c[basis]))
-        confirmed = jnp.all(Binv[:, 6] >= -tol) & jnp.all(d >= -tol)
-        return basis, Binv, it, degenerate, done & (confirmed | (it >= max_iter)), ok & confirmed
+        confirmed = ~jnp.any(d < -tol)
+        redo = done & ~confirmed
+        return basis, Binv, it + redo, degenerate, done & ~(redo & (it < max_iter)), ok & confirmed
 
     def cond(state):
         _, _, it, _, done, _ = state
