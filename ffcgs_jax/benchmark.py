@@ -89,9 +89,9 @@ def machine() -> dict:
 
 
 def _git_commit() -> str:
-    """The checkout's commit, when the package runs from one (a wheel install has none)."""
+    """The checkout's commit (+ "-dirty" with local changes), when the package runs from one (a wheel has none)."""
     try:
-        r = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True, timeout=10,
+        r = subprocess.run(["git", "describe", "--always", "--dirty"], capture_output=True, text=True, timeout=10,
                            cwd=Path(__file__).parent)
         return r.stdout.strip() if r.returncode == 0 and r.stdout.strip() else "no git"
     except (OSError, subprocess.SubprocessError):
@@ -109,7 +109,9 @@ def cli_start(obj: str, iters: int, backend: str, n: int = 32) -> dict:
     """Cold and warm `ffcgs grasp` in fresh processes sharing a new compilation cache; seconds."""
     out = {}
     with tempfile.TemporaryDirectory() as tmp:
-        env = {**os.environ, "FFCGS_JAX_CACHE": str(Path(tmp) / "xla"), "JAX_PLATFORMS": backend}
+        env = {**os.environ, "FFCGS_JAX_CACHE": str(Path(tmp) / "xla")}
+        if backend == "cpu":  # a CPU bench on a GPU machine; "gpu" is not set: it would also demand ROCm
+            env["JAX_PLATFORMS"] = "cpu"
         for kind in ("cold", "warm"):
             npz = Path(tmp) / f"{kind}.npz"
             cmd = [sys.executable, "-m", "ffcgs_jax.cli", "grasp", obj, "--n", str(n), "--iters", str(iters),
@@ -118,12 +120,18 @@ def cli_start(obj: str, iters: int, backend: str, n: int = 32) -> dict:
             r = subprocess.run(cmd, capture_output=True, text=True, env=env)
             wall = time.perf_counter() - t0
             if r.returncode != 0:
-                raise FfcgsError(f"`{' '.join(cmd[2:])}` failed during the CLI start benchmark: "
-                                 f"{(r.stderr.strip().splitlines() or ['no message'])[-1]}")
+                raise FfcgsError(f"`{' '.join(cmd[2:])}` failed during the CLI start benchmark: {_last_error(r.stderr)}")
             with np.load(npz) as z:
                 out[kind] = {"wall_s": wall, "compile_s": float(z["compile_s"]),
                              "synthesis_s": float(z["synthesis_s"])}
     return out
+
+
+def _last_error(stderr: str) -> str:
+    """The line that names the exception (JAX's traceback note comes after it), else the last line."""
+    lines = [ln.strip() for ln in stderr.strip().splitlines() if ln.strip()]
+    named = [ln for ln in lines if re.match(r"^([\w.]+(Error|Exception)|ffcgs: error):", ln)]
+    return (named or lines or ["no message"])[-1]
 
 
 def markdown(report: dict) -> str:

@@ -72,6 +72,14 @@ def test_bad_options_exit_2_with_one_line(argv, message, capsys):
     assert message in err and "Traceback" not in err
 
 
+def test_failed_cli_run_is_reported_by_its_exception_line():
+    stderr = ("Traceback (most recent call last):\n  File x\nRuntimeError: Unable to initialize backend 'rocm'\n"
+              "--------------------\nFor simplicity, JAX has removed its internal frames from the traceback.\n")
+    assert benchmark._last_error(stderr) == "RuntimeError: Unable to initialize backend 'rocm'"
+    assert benchmark._last_error("ffcgs: error: object not found: cup\n") == "ffcgs: error: object not found: cup"
+    assert benchmark._last_error("just a line\n") == "just a line"
+
+
 @pytest.mark.slow
 def test_cli_start_cold_then_warm(tmp_path):
     """The second process loads the first one's executables: it compiles much less."""
