@@ -192,7 +192,11 @@ def write_results(path: str | Path, report: dict) -> None:
     path.write_text(text)
 
 
-def run(cmd, progress=print) -> dict:
+def _print(line: str) -> None:
+    print(line, flush=True)  # rows take tens of seconds each: show them as they come, also into a log file
+
+
+def run(cmd, progress=_print) -> dict:
     """Everything `ffcgs bench` measures, as a JSON-able report (see `BenchCmd` in cli.py for the fields)."""
     import jax
 
