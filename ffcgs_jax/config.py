@@ -83,8 +83,8 @@ class EnergyConfig:
             leaves E_g only the torques to work with: contacts bunched on one side then cannot spread out.
         lp_solver: who solves the Q-distance LP: "jax" (a revised simplex inside the compiled graph, `lp_jax.py`)
             or "proxsuite" (a host callback, `lp_host.py`, the reference path). Same values to 1e-9 in float64;
-            "jax" is the default on every backend because it measured faster on both the 2-core CPU (1.5x at 32
-            grasps) and the H100 (3x at 32, 130x at 1024; bench/RESULTS.md).
+            "jax" is the default on every backend because it measured faster on both the 2-core CPU (1.9x at 32
+            grasps) and an H200 (22x at 32; `ffcgs bench`, bench/RESULTS.md).
         lp_pivots: the "jax" solver's pivot budget per LP; a solve that needs more is flagged not ok.
 
     Defaults are this project's method; `configs/paper.toml` sets the paper's (a_pen 0, normal_grad false).

@@ -155,6 +155,7 @@ def record_sdf(rec: dataset_io.Record) -> sdf_mod.GradientSDF:
 # ----------------------------------------------------------------------------------------------------------------
 
 
+@pytest.mark.slow  # a second full build in a subprocess, competing with main_build for the CI's 2 cores (~1 min)
 def test_killed_build_resumes_to_the_same_file(killed_run, main_build, objects_dir):
     # fixture order matters: the subprocess started first and ran while main_build compiled in-process
     out_text, _ = killed_run["proc"].communicate(timeout=400)
