@@ -596,6 +596,7 @@ def test_dataset_info_counts_json_and_gallery(capsys, main_build, objects_dir, t
 # ----------------------------------------------------------------------------------------------------------------
 
 
+@pytest.mark.slow  # its own compile (~30 s on 2 cores) for the q= start path; the suite runs near CI's budget
 def test_synthesize_start_channels(main_build, hand, tip_distance):
     # The build's grasp config and 8 poses: the q=None run reuses the planner's compiled refinement.
     gcfg = main_build["cfg"].grasp

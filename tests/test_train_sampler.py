@@ -193,6 +193,8 @@ def test_cvae_sampler_contract(hand, weights32, tmp_path):
         samplers.make_sampler("cvae", hand, SamplerConfig(weights=str(tmp_path / "other.npz")))
 
 
+@pytest.mark.slow  # cvae inside synthesize runs in the default suite anyway (the default sampler: test_grasp,
+# test_cli_grasp); this adds a non-default weights file, for another ~30 s compile
 def test_cvae_sampler_in_synthesize(hand, weights32):
     from ffcgs_jax import mesh_io
     from ffcgs_jax.config import GraspConfig, OptimConfig, SamplerConfig
