@@ -115,7 +115,8 @@ def _script(args, cwd):
                           timeout=600)
 
 
-def test_script_sweep_and_errors(toy, tmp_path):
+@pytest.mark.slow  # a training run in a fresh process compiles the step (~30 s on 2 cores); CI runs near its budget
+def test_script_sweep(toy, tmp_path):
     r = _script(["--config", str(REPO / "configs" / "sampler.toml"), "--data.path", str(toy), "--out",
                  str(tmp_path / "sw"), "--optim.epochs", "1", "--optim.batch", "8", "--steps_per_call", "4", *TINY,
                  "--sweep", "optim.lr=1e-3,3e-3"], REPO)
@@ -126,6 +127,9 @@ def test_script_sweep_and_errors(toy, tmp_path):
         run = tmp_path / "sw" / "sweep" / f"optim.lr={lr}"
         assert load(TrainConfig, run / "config.toml").optim.lr == float(lr)
         assert (run / "weights.npz").is_file()
+
+
+def test_script_errors(tmp_path):
     r = _script(["--optim.learning_rate", "1"], REPO)
     assert r.returncode != 0 and "learning_rate" in r.stderr and "Traceback" not in r.stderr
     r = _script(["--data.path", str(tmp_path / "missing.mcap"), "--out", str(tmp_path / "m")], REPO)
