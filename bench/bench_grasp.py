@@ -11,16 +11,15 @@ import argparse
 import dataclasses
 import itertools
 import platform
-import statistics
-import time
 
 import jax
 
 from ffcgs_jax import kinematics as K
 from ffcgs_jax import mesh_io, sdf
+from ffcgs_jax.benchmark import time_synthesis
 from ffcgs_jax.config import EnergyConfig, OptimConfig
 from ffcgs_jax.energy import make_target
-from ffcgs_jax.grasp import GraspConfig, compile_device
+from ffcgs_jax.grasp import GraspConfig
 
 METHODS = {
     "ours": (EnergyConfig(), OptimConfig()),
@@ -54,14 +53,8 @@ def main():
                 continue
             cfg = GraspConfig(n=b, sampler=args.sampler, energy=dataclasses.replace(energy, lp_solver=solver),
                               optim=optim)
-            run, compile_s = compile_device(hand, target, cfg)
-            times = []
-            for i in range(args.repeats + 1):  # the first call warms caches and is dropped
-                t0 = time.perf_counter()
-                jax.block_until_ready(run(jax.random.PRNGKey(i)))
-                times.append(time.perf_counter() - t0)
-            warm = statistics.median(times[1:])
-            rows.append((method, solver, b, compile_s, warm, b / warm))
+            row = time_synthesis(hand, target, cfg, args.repeats)  # the first call warms caches and is dropped
+            rows.append((method, solver, b, row.compile_s, row.median_s, row.rate))
             print(rows[-1], flush=True)
     dev = jax.devices()[0]
     print(f"device: {dev.platform} ({dev.device_kind}), jax {jax.__version__}, {platform.machine()}; "

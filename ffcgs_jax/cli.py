@@ -105,12 +105,11 @@ class BenchCmd:
     json: str | None = None
 
     def check(self) -> None:
-        from ffcgs_jax.config import LP_SOLVERS, SAMPLERS
+        from ffcgs_jax.config import LP_SOLVERS
 
         if self.backend not in ("default", "cpu", "gpu"):
             raise FfcgsError(f"--backend must be default, cpu or gpu, got {self.backend!r}")
-        if self.sampler not in SAMPLERS:
-            raise FfcgsError(f"unknown sampler {self.sampler!r}; samplers: {', '.join(SAMPLERS)}")
+        GraspConfig(sampler=self.sampler).check()
         for s in self.lp_solvers:
             if s not in LP_SOLVERS:
                 raise FfcgsError(f"unknown LP solver {s!r}; solvers: {', '.join(LP_SOLVERS)}")

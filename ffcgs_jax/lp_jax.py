@@ -21,7 +21,9 @@ few pivots, which also gives the returned solution, so rounding from the updates
 Start without phase 1: U holds +-e_i (`quality.basis`), so {sign(w_0i) e_i for i < 6} plus alpha_0 is a feasible
 basis: rho_i = |w_0i|, alpha_0 = 1. A warm start (`basis0`, the optimal basis of a nearby LP, e.g. the previous
 descent step's) is used instead when it is still a primal-feasible basis of this LP; after a small move of the
-wrenches it is usually still optimal or a pivot or two away. Where it is not (degenerate vertices, common at force
+wrenches it takes about a third of a cold start's pivots (`bench/lp_warm_pivots.py`, random walks of the contacts:
+4.7 against 12.8 on average; the batch's worst LP, which sets a lockstep batch's pace, gains less: 20.9 against
+22.6). Where it is not (degenerate vertices, common at force
 closure where E_g = 0, turn slightly infeasible) the solve starts cold. Repairing such bases with dual simplex steps
 was tried: fewer pivots on average, but a longer worst case, and a batch pivots in lockstep, so it measured slower
 (H100, B = 8192: 24k against 42k grasps/s).
@@ -45,7 +47,7 @@ _BLAND_AFTER = 8
 # Pivots per while-loop trip. On a GPU each trip costs a device-to-host check of the loop condition and a dozen
 # launches: 8 measured 46 ms against 51 ms for 4 and 56 ms for 2 (H100, 32 grasps x 50 steps). On a CPU the pivots
 # a finished batch still runs are wasted work, so fewer.
-_PIVOTS_PER_TRIP = {"cpu": 4}
+_PIVOTS_PER_TRIP_CPU = 4
 _PIVOTS_PER_TRIP_GPU = 8
 
 
@@ -119,7 +121,6 @@ def solve(W: Float[Array, "6 N"], U: Float[Array, "6 K"], axes: np.ndarray, max_
     # the cold basis [[D, -w_0], [0, 1]] (D = diag(+-1)) has the inverse [[D, D w_0], [0, 1]]: no elimination
     sign = jnp.where(W[:, 0] >= 0, 1.0, -1.0).astype(dt)
     Binv = jnp.eye(7, dtype=dt).at[:6, :6].set(jnp.diag(sign)).at[:6, 6].set(sign * W[:, 0])
-    cold = (basis, Binv)
     if basis0 is not None:
         basis0 = jnp.asarray(basis0, jnp.int32)
         inv0, smallest = inverse(A[:, jnp.clip(basis0, 0, K + N - 1)])
@@ -150,7 +151,8 @@ def solve(W: Float[Array, "6 N"], U: Float[Array, "6 K"], axes: np.ndarray, max_
                 stop, jnp.where(done, ok, optimal))
 
     def trip(state):
-        for _ in range(_PIVOTS_PER_TRIP.get(jax.default_backend(), _PIVOTS_PER_TRIP_GPU)):
+        cpu = jax.default_backend() == "cpu"
+        for _ in range(_PIVOTS_PER_TRIP_CPU if cpu else _PIVOTS_PER_TRIP_GPU):
             state = pivot(state)
         basis, Binv, it, degenerate, done, ok = state
         # a fresh inverse after every trip: no drift from the rank-one updates, and the returned one is exact.

@@ -96,8 +96,8 @@ def _optimize(hand: Hand, target: Target, poses, energy_cfg: EnergyConfig, optim
                 terms.lp_basis), record
 
     x0 = (q0, xi0)
-    # each step's LP starts from the previous step's optimal basis: the wrenches move little per step, so it
-    # usually is still optimal and the solve takes no pivot (-1s: no warm start for the first step)
+    # each step's LP starts from the previous step's optimal basis: the wrenches move little per step, so it is
+    # often still optimal or a few pivots away (-1s: no warm start for the first step)
     init = (x0, jnp.ones(B, bool), jnp.zeros(B, jnp.int32), jnp.ones(B, bool), adam_init(x0),
             jnp.full((B, 7), -1, jnp.int32))
     ((q, xi), active, iters, lp_ok, _, lp_basis), hist = jax.lax.scan(step, init, jnp.arange(T))
