@@ -191,9 +191,17 @@ def beta(step, total_steps, beta_max: float, cycles: int, ramp: float):
 def sample_vectors(params: dict, grid: Float[Array, "R R R 4"], half: Float[Array, ""], key: jax.Array, n: int,
                    latent: int) -> Float[Array, "B 9"]:
     """n pose vectors for one object, z ~ N(0, I) (the encoder is not used)."""
-    feats = features(params, normalise_grid(grid, half))
-    base = fcn_base(params["decoder"], feats)
     z = jax.random.normal(key, (n, latent), dtype=grid.dtype)
+    return decode_many(params, decoder_base(params, grid, half), z)
+
+
+def decoder_base(params: dict, grid: Float[Array, "R R R 4"], half: Float[Array, ""]) -> tuple:
+    """The per-object part of sampling: the U-Net's features and the decoder's `fcn_base`."""
+    return fcn_base(params["decoder"], features(params, normalise_grid(grid, half)))
+
+
+def decode_many(params: dict, base: tuple, z: Float[Array, "B Z"]) -> Float[Array, "B 9"]:
+    """Pose vectors for latent codes z, from `decoder_base`."""
     # Chunks bound the memory: each candidate's first layer is a full (R/2)^3 x head volume, 0.5 MB at R = 32, so
     # 65536 poses x 4 candidates at once would need 128 GB.
     return jax.lax.map(lambda zz: decode(params, base, zz), z, batch_size=_DECODE_CHUNK)

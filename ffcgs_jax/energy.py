@@ -40,10 +40,10 @@ class Terms(NamedTuple):
 
 
 def make_target(grid: sdf.GradientSDF) -> Target:
-    """Target with centre and radius read off the SDF (host side)."""
+    """Target with centre and radius read off the SDF (host side), and the SDF's cell table for fast queries."""
     ext = sdf.object_extent(grid)
     dtype = grid.grid.dtype
-    return Target(grid, jnp.asarray(ext.centre, dtype), jnp.asarray(ext.radius, dtype))
+    return Target(sdf.with_cells(grid), jnp.asarray(ext.centre, dtype), jnp.asarray(ext.radius, dtype))
 
 
 def contact_energy(d: Float[Array, " C"], d0: float) -> Float[Array, ""]:

@@ -20,7 +20,7 @@ from jax.sharding import PartitionSpec as P
 
 from ffcgs_jax import filters as F
 from ffcgs_jax import kinematics as K
-from ffcgs_jax import metrics, samplers
+from ffcgs_jax import metrics, samplers, sharding
 from ffcgs_jax import sdf as sdf_mod
 from ffcgs_jax.config import EnergyConfig, GraspConfig, OptimConfig, check_all
 from ffcgs_jax.energy import Target, make_target
@@ -55,23 +55,14 @@ def _device_part(hand: Hand, target: Target, key: jax.Array, given: jax.Array | 
     if given is None:
         palm_root = K.forward_kinematics(hand, jnp.eye(4, dtype=hand.lower.dtype), jnp.zeros_like(hand.lower)).palm_pos
         poses = samplers.CORES[cfg.sampler](hand, palm_root, key, target.sdf, n, cfg.sampling, cfg.filters,
-                                            params=sampler_params, res=sampler_res)
+                                            params=sampler_params, res=sampler_res, mesh=mesh)
     else:
         poses = given
-    if mesh is None or mesh.size == 1:
-        return _descend_and_filter(hand, target, poses, given_q, cfg)
-    # Each device optimises its own share: the poses are independent, so shard_map keeps every loop (descent steps,
-    # simplex pivots) local to its device, with no cross-device traffic until the results are gathered.
-    B, d = poses.shape[0], mesh.size
-    pad = lambda x: None if x is None else jnp.concatenate([x, jnp.repeat(x[-1:], (-B) % d, 0)])  # noqa: E731
-    specs = DeviceOut(*[P(_AXIS)] * 7)._replace(
-        opt=OptResult(*[P(_AXIS)] * 6, trace=P(None, _AXIS)))  # the trace is (T+1, B, ...)
-    q_spec = None if given_q is None else P(_AXIS)
-    out = jax.shard_map(functools.partial(_descend_and_filter, cfg=cfg), mesh=mesh,
-                        in_specs=(P(), P(), P(_AXIS), q_spec), out_specs=specs, check_vma=False)(
-        hand, target, pad(poses), pad(given_q))
-    unpad = lambda s, sub: jax.tree.map(lambda x: x[:, :B] if len(s) == 2 else x[:B], sub)  # noqa: E731
-    return jax.tree.map(unpad, specs, out, is_leaf=lambda x: isinstance(x, P))
+    # The trace is (T+1, B, ...): its pose axis is the second.
+    specs = DeviceOut(*[P(sharding.AXIS)] * 7)._replace(
+        opt=OptResult(*[P(sharding.AXIS)] * 6, trace=P(None, sharding.AXIS)))
+    return sharding.split(functools.partial(_descend_and_filter, cfg=cfg), mesh, (hand, target), (poses, given_q),
+                          specs)
 
 
 def _descend_and_filter(hand: Hand, target: Target, poses: jax.Array, given_q: jax.Array | None,
@@ -92,16 +83,7 @@ def _descend_and_filter(hand: Hand, target: Target, poses: jax.Array, given_q: j
     )
 
 
-def device_mesh(devices: int = 0) -> Mesh:
-    """A 1-D mesh over the first `devices` local devices of the default backend (0: all of them)."""
-    local = jax.local_devices()
-    if devices > len(local):
-        raise FfcgsError(f"devices = {devices} asked for, but this machine has {len(local)} "
-                         f"{jax.default_backend()} device(s)")
-    return Mesh(np.array(local[:devices or len(local)]), (_AXIS,))
-
-
-_AXIS = "poses"
+device_mesh = sharding.device_mesh
 _device_jit = jax.jit(_device_part, static_argnames=("cfg", "n", "sampler_res", "mesh"))
 _COMPILED: dict = {}
 

@@ -24,7 +24,6 @@ from ffcgs_jax import kinematics as K
 from ffcgs_jax import sdf as sdf_mod
 from ffcgs_jax.config import FilterConfig, GraspConfig, PhysicsConfig, PlannerConfig, SamplerConfig, check_all
 from ffcgs_jax.energy import Target, contact_energy, joint_energy, make_target
-from ffcgs_jax.errors import FfcgsError
 from ffcgs_jax.hand_spec import HandSpec
 from ffcgs_jax.kinematics import Hand
 from ffcgs_jax.optimize import twist_pose

@@ -21,8 +21,9 @@ import jax
 import jax.numpy as jnp
 import mujoco
 import numpy as np
+from jax.sharding import Mesh
 
-from ffcgs_jax import cvae
+from ffcgs_jax import cvae, sharding
 from ffcgs_jax import filters as F
 from ffcgs_jax import sdf as S
 from ffcgs_jax.config import SAMPLERS, SamplerConfig
@@ -171,12 +172,13 @@ def surface_points(
 def sample_random(
     hand: Hand, palm_root: Float[Array, " 3"], key: jax.Array, sdf: GradientSDF, n: int, cfg: SamplerConfig,
     filters: F.FilterConfig = F.FilterConfig(), params: dict | None = None, res: int | None = None,
+    mesh: Mesh | None = None,
 ) -> Float[Array, "B 4 4"]:
     """Table I's random baseline: palm centre uniform in the scaled bounding box, rotation uniform on SO(3).
 
     A normalised 4-D Gaussian is uniform on the unit quaternions, hence its rotation uniform on SO(3).
     """
-    del hand, filters, params, res  # the samplers share one signature; random poses are not filtered (the paper's)
+    del hand, filters, params, res, mesh  # one signature for all samplers; random poses are not filtered (paper)
     k_t, k_q = jax.random.split(key)
     lo, hi = bounding_box(sdf)
     centre, half = (lo + hi) / 2, cfg.translation_scale * (hi - lo) / 2
@@ -207,7 +209,7 @@ class Candidates(NamedTuple):
 
 def geometric_candidates(
     hand: Hand, palm_root: Float[Array, " 3"], key: jax.Array, sdf: GradientSDF, m: int, cfg: SamplerConfig,
-    filters: F.FilterConfig = F.FilterConfig(),
+    filters: F.FilterConfig = F.FilterConfig(), mesh: Mesh | None = None,
 ) -> Candidates:
     """m unfiltered geometric poses: palm centre at p + standoff n facing the surface, random spin about n.
 
@@ -219,6 +221,7 @@ def geometric_candidates(
         m: number of candidates (static).
         cfg: standoff.
         filters: thresholds of the pose filters (default: the paper's).
+        mesh: devices to split the filters' work over (`sharding.split`); None: the default device.
     Returns:
         Candidates, with the filter verdicts.
     """
@@ -230,7 +233,7 @@ def geometric_candidates(
     p, n = surface_points(k_p, sdf, m, -f.palm_up_max)
     theta = jax.random.uniform(k_s, (m,), dtype=p.dtype, maxval=2 * jnp.pi)
     poses = jax.vmap(palm_facing_pose, (None, None, 0, 0, 0))(hand, palm_root, p + cfg.standoff * n, n, theta)
-    valid, violation = pose_verdicts(hand, sdf, poses, f)
+    valid, violation = sharding.split(lambda h, s_, x: pose_verdicts(h, s_, x, f), mesh, (hand, sdf), (poses,))
     return Candidates(poses, p, n, valid, violation)
 
 
@@ -255,6 +258,7 @@ def _valid_first(poses: Float[Array, "M 4 4"], valid: Bool[Array, " M"], violati
 def sample_geometric(
     hand: Hand, palm_root: Float[Array, " 3"], key: jax.Array, sdf: GradientSDF, n: int, cfg: SamplerConfig,
     filters: F.FilterConfig = F.FilterConfig(), params: dict | None = None, res: int | None = None,
+    mesh: Mesh | None = None,
 ) -> Float[Array, "B 4 4"]:
     """The first n valid of oversample * n geometric candidates, topped up with the least violating invalid ones.
 
@@ -263,13 +267,14 @@ def sample_geometric(
     only valid poses re-check them with `filters`.
     """
     del params, res
-    c = geometric_candidates(hand, palm_root, key, sdf, cfg.oversample * n, cfg, filters)
+    c = geometric_candidates(hand, palm_root, key, sdf, cfg.oversample * n, cfg, filters, mesh)
     return _valid_first(c.poses, c.valid, c.violation, n)
 
 
 def sample_cvae(
     hand: Hand, palm_root: Float[Array, " 3"], key: jax.Array, sdf: GradientSDF, n: int, cfg: SamplerConfig,
     filters: F.FilterConfig = F.FilterConfig(), params: dict | None = None, res: int | None = None,
+    mesh: Mesh | None = None,
 ) -> Float[Array, "B 4 4"]:
     """The learned sampler (`cvae.py`): cvae_oversample * n poses decoded from z ~ N(0, I), valid ones first.
 
@@ -277,7 +282,8 @@ def sample_cvae(
     keeping the ones that pass the pose filters costs one batched decoder call (the U-Net runs once).
     `params` are the network's weights (`cvae_train.load_weights`); the latent size is read from their shapes.
     `res` is the SDF resolution they were trained at: a grid of another resolution is resampled to it for the
-    network (`sdf.resample`); the pose filters still use the grid given.
+    network (`sdf.resample`); the pose filters still use the grid given. With a `mesh` of several devices each
+    decodes and filters its share of the candidates (the same poses as on one device).
     """
     if params is None:
         raise FfcgsError("the cvae sampler needs its weights (params=...)")
@@ -285,9 +291,18 @@ def sample_cvae(
     net_sdf = sdf if res is None or res == sdf.grid.shape[0] else S.resample(sdf, res)
     centre, half = cvae.grid_frame(net_sdf.origin, net_sdf.voxel_size, net_sdf.grid.shape[0])
     m = cfg.cvae_oversample * n
-    g = cvae.sample_vectors(params, net_sdf.grid, half, key, m, latent)
-    poses = jax.vmap(cvae.vector_to_pose, (0, None, None, None))(g.astype(sdf.grid.dtype), palm_root, centre, half)
-    valid, violation = pose_verdicts(hand, sdf, poses, filters)
+    base = cvae.decoder_base(params, net_sdf.grid, half)  # once per object, on every device
+    z = jax.random.normal(key, (m, latent), dtype=net_sdf.grid.dtype)
+
+    def per_candidate(params, base, palm_root, centre, half, hand, sdf, z):
+        g = cvae.decode_many(params, base, z).astype(sdf.grid.dtype)
+        poses = jax.vmap(cvae.vector_to_pose, (0, None, None, None))(g, palm_root, centre, half)
+        return (poses, *pose_verdicts(hand, sdf, poses, filters))
+
+    # the decoder is most of the sampler's work: each device decodes its share of the candidates, and the first n
+    # valid ones are then picked over all of them, so the poses do not depend on the number of devices
+    poses, valid, violation = sharding.split(per_candidate, mesh, (params, base, palm_root, centre, half, hand, sdf),
+                                             (z,))
     return _valid_first(poses, valid, violation, n)
 
 

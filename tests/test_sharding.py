@@ -22,6 +22,9 @@ SCRIPT = textwrap.dedent("""
     from ffcgs_jax import kinematics as K, mesh_io
     from ffcgs_jax.config import EnergyConfig, GraspConfig, OptimConfig
     from ffcgs_jax.grasp import synthesize
+    from ffcgs_jax.sdf import build_sdf
+    from ffcgs_jax.config import SDFConfig
+    import jax.numpy as jnp
     hand, mesh = K.load_hand("svh"), mesh_io.load_mesh("box")
     out = {"devices": len(jax.devices())}
     for d in (1, 2):
@@ -30,6 +33,20 @@ SCRIPT = textwrap.dedent("""
         gs = synthesize(hand, mesh, cfg)
         out[d] = {k: np.asarray(gs[k], float).tolist() for k in ("q", "E", "wrist_pose", "valid", "penetration")}
         out[d]["trace"] = gs.trace["E"].tolist()
+    # the samplers split their candidates over the devices: cvae (decoder and filters), geometric (filters)
+    from functools import partial
+    from ffcgs_jax import samplers
+    from ffcgs_jax.energy import make_target
+    from ffcgs_jax.grasp import device_mesh
+    from ffcgs_jax.samplers import SamplerConfig
+    sdf = make_target(build_sdf(mesh, SDFConfig(res=32))).sdf
+    palm = jnp.asarray(samplers.palm_centre_root(hand))
+    for name in ("cvae", "geometric"):
+        params, res = samplers.sampler_params(name, hand, SamplerConfig())
+        for d in (1, 2):
+            core = jax.jit(partial(samplers.CORES[name], cfg=SamplerConfig(), res=res, mesh=device_mesh(d)),
+                           static_argnames="n")
+            out[f"{name}{d}"] = np.asarray(core(hand, palm, jax.random.PRNGKey(3), sdf, n=5, params=params)).tolist()
     print(json.dumps(out))
 """)
 
@@ -42,6 +59,9 @@ def test_two_devices_give_the_one_device_grasps():
     out = json.loads(r.stdout.strip().splitlines()[-1])
     assert out["devices"] == 2
 
+    for name in ("cvae", "geometric"):  # 5 poses from 20 (cvae) or more candidates, split over 2 devices
+        np.testing.assert_allclose(out[f"{name}2"], out[f"{name}1"], atol=1e-5, err_msg=name)
+        assert np.asarray(out[f"{name}1"]).shape == (5, 4, 4)
     one, two = out["1"], out["2"]
     for k in one:
         a, b = np.asarray(one[k]), np.asarray(two[k])
