@@ -34,12 +34,15 @@ within `max_iter` pivots returns ok = False (callers mask it, as for the host pa
 """
 
 import functools
+import os
 from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ffcgs_jax import lp_pallas
+from ffcgs_jax.errors import FfcgsError
 from ffcgs_jax.types import Array, Bool, Float, Int
 
 MAX_ITER = 100  # pivots; instances of this size took at most about 40 (tests/test_lp_jax.py)
@@ -103,6 +106,18 @@ class Solution(NamedTuple):
     pivots: Int[Array, ""]  # pivots taken
 
 
+def kernel_for(backend: str) -> str:
+    """Which implementation runs the pivots: "pallas" (one GPU program per LP, `lp_pallas.py`) on GPUs, "xla"
+    elsewhere; the environment variable FFCGS_LP_KERNEL (xla, pallas, auto) overrides it. Read when a function is
+    traced, so set it before the first call. "pallas" on a CPU runs Pallas's interpreter (tests only: it is slow)."""
+    choice = os.environ.get("FFCGS_LP_KERNEL", "auto").strip().lower() or "auto"
+    if choice not in ("auto", "xla", "pallas"):
+        raise FfcgsError(f"FFCGS_LP_KERNEL must be auto, xla or pallas, got {choice!r}")
+    if choice == "auto":
+        return "pallas" if backend in ("gpu", "cuda", "rocm") else "xla"
+    return choice
+
+
 def solve(W: Float[Array, "6 N"], U: Float[Array, "6 K"], axes: np.ndarray, max_iter: int = MAX_ITER,
           basis0: Int[Array, " 7"] | None = None) -> Solution:
     """One LP; see the module docstring. vmap batches it.
@@ -113,6 +128,12 @@ def solve(W: Float[Array, "6 N"], U: Float[Array, "6 K"], axes: np.ndarray, max_
     dt = W.dtype
     K, N = U.shape[1], W.shape[1]
     tol = _tol(dt)
+    if kernel_for(jax.default_backend()) == "pallas":
+        cpu = jax.default_backend() == "cpu"
+        basis, Binv, ok, pivots = lp_pallas.solve_basis(
+            W, U, axes, max_iter, jnp.full(7, -1, jnp.int32) if basis0 is None else basis0, tol,
+            _PIVOTS_PER_TRIP_CPU if cpu else _PIVOTS_PER_TRIP_GPU, _BLAND_AFTER, interpret=cpu)
+        return _solution(basis, Binv, ok, pivots, K, N)
     A = jnp.concatenate([jnp.concatenate([U.astype(dt), -W], 1),
                          jnp.concatenate([jnp.zeros((1, K), dt), jnp.ones((1, N), dt)], 1)], 0)
     c = jnp.concatenate([jnp.ones(K, dt), jnp.zeros(N, dt)])
@@ -172,6 +193,13 @@ def solve(W: Float[Array, "6 N"], U: Float[Array, "6 K"], axes: np.ndarray, max_
     init = (basis, Binv, jnp.zeros((), jnp.int32), jnp.zeros((), jnp.int32), jnp.zeros((), bool),
             jnp.zeros((), bool))
     basis, Binv, pivots, _, _, ok = jax.lax.while_loop(cond, trip, init)
+    return _solution(basis, Binv, ok, pivots, K, N)
+
+
+def _solution(basis, Binv, ok, pivots, K: int, N: int) -> Solution:
+    """Value, duals and hull weights read off an optimal basis and its inverse."""
+    dt = Binv.dtype
+    c = jnp.concatenate([jnp.ones(K, dt), jnp.zeros(N, dt)])
     xB = jnp.maximum(Binv[:, 6], 0.0)
     y = Binv.T @ c[basis]
     value = jnp.maximum(y[6], 0.0)

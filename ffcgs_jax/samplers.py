@@ -306,8 +306,9 @@ def sample_cvae(
     return _valid_first(poses, valid, violation, n)
 
 
-# The cores by name, (hand, palm_root, key, sdf, n, cfg, filters, params, res) -> (n, 4, 4): for pipelines that jit around them (no
-# host checks; palm_root from `palm_centre_root`). `make_sampler` wraps one with the checks and its own jit.
+# The cores by name, (hand, palm_root, key, sdf, n, cfg, filters, params, res, mesh) -> (n, 4, 4): for pipelines that
+# jit around them (no host checks; palm_root from `palm_centre_root`). `make_sampler` wraps one with the checks and its
+# own jit.
 CORES = {"random": sample_random, "geometric": sample_geometric, "cvae": sample_cvae}
 assert sorted(CORES) == sorted(SAMPLERS), "config.SAMPLERS must name the samplers implemented here"
 

@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 from ffcgs_jax import lp_host, lp_jax, metrics, quality
+from ffcgs_jax.errors import FfcgsError
 
 U = quality.basis(64)
 AXES = lp_jax._axis_columns(U)
@@ -196,3 +197,37 @@ def test_unknown_solver_is_refused():
 
     with pytest.raises(FfcgsError, match="unknown energy.lp_solver 'highs'; solvers: jax, proxsuite"):
         EnergyConfig(lp_solver="highs").check()
+
+
+def test_pallas_kernel_takes_the_xla_pivots(instances, monkeypatch):
+    """The one-program-per-LP kernel (`lp_pallas.py`, the GPU default; Pallas's interpreter runs it here) in
+    float64: the XLA path's pivots and bases, HiGHS's values, cold, warm (a perturbed LP from the optimal basis of
+    the unperturbed one) and with an unusable warm basis (falls back to the cold start)."""
+    sub = jnp.asarray(instances[::3])  # 20 LPs, every kind
+    xla = jax.jit(jax.vmap(lambda W: lp_jax.solve(W, jnp.asarray(U), AXES)))(sub)
+    monkeypatch.setenv("FFCGS_LP_KERNEL", "pallas")
+    assert lp_jax.kernel_for("cpu") == "pallas"
+    f = jax.jit(jax.vmap(lambda W, b: lp_jax.solve(W, jnp.asarray(U), AXES, basis0=b)))
+    cold = f(sub, jnp.full((len(sub), 7), -1, jnp.int32))
+    assert np.asarray(cold.ok).all()
+    np.testing.assert_array_equal(cold.pivots, xla.pivots)
+    np.testing.assert_array_equal(cold.basis, xla.basis)
+    np.testing.assert_allclose(cold.value, xla.value, atol=1e-12)
+    np.testing.assert_allclose(cold.alpha, xla.alpha, atol=1e-12)
+    np.testing.assert_allclose(cold.value, [metrics.q_distance_reference(W.T, U) for W in np.asarray(sub)], atol=1e-9)
+    moved = sub + 1e-3 * np.random.default_rng(5).normal(size=sub.shape)
+    warm = f(moved, cold.basis)
+    assert np.asarray(warm.ok).all() and np.asarray(warm.pivots).mean() < np.asarray(cold.pivots).mean()
+    np.testing.assert_allclose(warm.value, [metrics.q_distance_reference(W.T, U) for W in np.asarray(moved)],
+                               atol=1e-9)
+    bad = f(sub, jnp.full((len(sub), 7), 10_000, jnp.int32))  # out of range: the cold start
+    np.testing.assert_array_equal(bad.pivots, xla.pivots)
+
+
+def test_lp_kernel_choice(monkeypatch):
+    assert lp_jax.kernel_for("gpu") == "pallas" and lp_jax.kernel_for("cpu") == "xla"
+    monkeypatch.setenv("FFCGS_LP_KERNEL", "xla")
+    assert lp_jax.kernel_for("gpu") == "xla"
+    monkeypatch.setenv("FFCGS_LP_KERNEL", "triton")
+    with pytest.raises(FfcgsError, match="FFCGS_LP_KERNEL must be auto, xla or pallas, got 'triton'"):
+        lp_jax.kernel_for("gpu")

@@ -36,6 +36,7 @@ def run(hand, target):
     return PL.anneal(hand, target, CFG, KEY)
 
 
+@pytest.mark.slow  # CI margin: ~50 s with its fixture on the 2-core machine
 def test_annealing_lowers_the_energy(hand, target, run):
     s = PL.start_jit(hand, target, CFG, KEY)
     before = np.asarray(PL.cheap_energy_batch(hand, target, s.poses, s.q, CFG, FilterConfig()))
