@@ -177,6 +177,7 @@ def test_twist_derivative_at_zero_is_the_hat_map():
 # ---------------------------------------------------------------------------------------------------------------
 
 
+@pytest.mark.slow  # CI margin: the default suite reached 15.3 min on the 2-core machine
 def test_optimize_traces_under_rank_promotion_raise(toy):
     hand, target, poses = toy
     optimize(hand, target, poses, ECFG, GD)

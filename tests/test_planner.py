@@ -56,6 +56,7 @@ def test_deterministic_for_a_seed(hand, target, run):
     assert not np.allclose(run[2], other[2])
 
 
+@pytest.mark.slow  # CI margin: the default suite reached 15.3 min on the 2-core machine
 def test_candidates_are_independent(hand, target):
     s = PL.start_jit(hand, target, CFG, KEY)
     k = 3
