@@ -47,11 +47,16 @@ from ffcgs_jax.types import Array, Bool, Float, Int
 
 MAX_ITER = 100  # pivots; instances of this size took at most about 40 (tests/test_lp_jax.py)
 _BLAND_AFTER = 8
-# Pivots per while-loop trip. On a GPU each trip costs a device-to-host check of the loop condition and a dozen
-# launches: 8 measured 46 ms against 51 ms for 4 and 56 ms for 2 (H100, 32 grasps x 50 steps). On a CPU the pivots
-# a finished batch still runs are wasted work, so fewer.
+# Pivots per while-loop trip (the inverse is refreshed after each trip). With XLA pivots on a GPU each trip cost a
+# device-to-host check of the loop condition and a dozen launches: 8 measured 46 ms against 51 ms for 4 and 56 ms
+# for 2 (H100, 32 grasps x 50 steps). On a CPU the pivots a finished batch still runs are wasted work, so fewer.
+# The Pallas kernel uses the same counts, so both paths take the same pivots.
 _PIVOTS_PER_TRIP_CPU = 4
 _PIVOTS_PER_TRIP_GPU = 8
+
+
+def _pivots_per_trip() -> int:
+    return _PIVOTS_PER_TRIP_CPU if jax.default_backend() == "cpu" else _PIVOTS_PER_TRIP_GPU
 
 
 def _tol(dtype) -> float:
@@ -129,10 +134,9 @@ def solve(W: Float[Array, "6 N"], U: Float[Array, "6 K"], axes: np.ndarray, max_
     K, N = U.shape[1], W.shape[1]
     tol = _tol(dt)
     if kernel_for(jax.default_backend()) == "pallas":
-        cpu = jax.default_backend() == "cpu"
         basis, Binv, ok, pivots = lp_pallas.solve_basis(
             W, U, axes, max_iter, jnp.full(7, -1, jnp.int32) if basis0 is None else basis0, tol,
-            _PIVOTS_PER_TRIP_CPU if cpu else _PIVOTS_PER_TRIP_GPU, _BLAND_AFTER, interpret=cpu)
+            _pivots_per_trip(), _BLAND_AFTER, interpret=jax.default_backend() == "cpu")
         return _solution(basis, Binv, ok, pivots, K, N)
     A = jnp.concatenate([jnp.concatenate([U.astype(dt), -W], 1),
                          jnp.concatenate([jnp.zeros((1, K), dt), jnp.ones((1, N), dt)], 1)], 0)
@@ -149,11 +153,13 @@ def solve(W: Float[Array, "6 N"], U: Float[Array, "6 K"], axes: np.ndarray, max_
                   & jnp.all(inv0[:, 6] >= -tol) & jnp.all(jnp.isfinite(inv0)))
         basis, Binv = jnp.where(usable, basis0, basis), jnp.where(usable, inv0, Binv)
 
+    def reduced_costs(basis, Binv):
+        return jnp.where(jnp.isin(cols, basis), 0.0, c - A.T @ (Binv.T @ c[basis]))
+
     def pivot(state):
         basis, Binv, it, degenerate, done, ok = state
         xB = jnp.maximum(Binv[:, 6], 0.0)  # B^-1 b with b = e_7
-        y = Binv.T @ c[basis]
-        d = jnp.where(jnp.isin(cols, basis), 0.0, c - A.T @ y)
+        d = reduced_costs(basis, Binv)
         neg = d < -tol
         optimal = ~jnp.any(neg)
         enter = jnp.where(degenerate >= _BLAND_AFTER, jnp.argmax(neg), jnp.argmin(d))
@@ -172,8 +178,7 @@ def solve(W: Float[Array, "6 N"], U: Float[Array, "6 K"], axes: np.ndarray, max_
                 stop, jnp.where(done, ok, optimal))
 
     def trip(state):
-        cpu = jax.default_backend() == "cpu"
-        for _ in range(_PIVOTS_PER_TRIP_CPU if cpu else _PIVOTS_PER_TRIP_GPU):
+        for _ in range(_pivots_per_trip()):
             state = pivot(state)
         basis, Binv, it, degenerate, done, ok = state
         # a fresh inverse after every trip: no drift from the rank-one updates, and the returned one is exact.
@@ -181,8 +186,7 @@ def solve(W: Float[Array, "6 N"], U: Float[Array, "6 K"], axes: np.ndarray, max_
         # so a trip that made no pivot always confirms), or the pivots go on; an unconfirmed trip counts against
         # the budget, so the loop ends whatever rounding does.
         Binv = inverse(A[:, basis])[0]
-        d = jnp.where(jnp.isin(cols, basis), 0.0, c - A.T @ (Binv.T @ c[basis]))
-        confirmed = ~jnp.any(d < -tol)
+        confirmed = ~jnp.any(reduced_costs(basis, Binv) < -tol)
         redo = done & ~confirmed
         return basis, Binv, it + redo, degenerate, done & ~(redo & (it < max_iter)), ok & confirmed
 
@@ -248,8 +252,8 @@ def q_distance(W: Float[Array, "6 N"], U: np.ndarray, max_iter: int = MAX_ITER,
     basis (pass it back as `basis0` to warm-start a nearby LP), in pure JAX.
 
     Same contract as `lp_host.q_distance` for the first two outputs: differentiable wrt W (reverse mode,
-    dE_g/dW = lam alpha^T); U is a host array fixed per configuration; vmap batches it (the pivots of a batch run
-    in lockstep until all are done).
+    dE_g/dW = lam alpha^T); U is a host array fixed per configuration; vmap batches it (with XLA pivots a batch
+    runs in lockstep until all are done; the Pallas kernel, `kernel_for`, lets each LP stop on its own).
     """
     U = np.ascontiguousarray(U, np.float64)
     if basis0 is None:
