@@ -9,7 +9,7 @@ from jaxtyping import Array, Bool, Float, Int
 from ffcgs_jax import filters as F
 from ffcgs_jax import quality, sdf
 from ffcgs_jax.config import EnergyConfig
-from ffcgs_jax.kinematics import Hand, contact_points
+from ffcgs_jax.kinematics import Hand, forward_kinematics
 
 
 class Target(NamedTuple):
@@ -62,7 +62,8 @@ def energy(
 ) -> tuple[Float[Array, ""], Terms]:
     """E and its parts for one wrist pose and channel vector (differentiable in q). `lp_basis`: a warm start for
     the Q-distance LP (`Terms.lp_basis` of a nearby call)."""
-    c = contact_points(hand, wrist_pose, q)
+    frames = forward_kinematics(hand, wrist_pose, q)  # one MJX pass (and one backward) for contacts and spheres
+    c = frames.contacts
     _, n = sdf.query(target.sdf, c)
     if not cfg.normal_grad:
         n = jax.lax.stop_gradient(n)
@@ -71,6 +72,6 @@ def energy(
                                              cfg.basis_size, cfg.lp_solver, cfg.lp_pivots, lp_basis)
     E_c = contact_energy(d, cfg.d0)
     E_q = joint_energy(hand, q)
-    P = F.penetration_penalty(hand, target.sdf, wrist_pose, q) if cfg.a_pen > 0 else jnp.zeros_like(E_c)
+    P = F.penetration_penalty(hand, target.sdf, wrist_pose, q, frames) if cfg.a_pen > 0 else jnp.zeros_like(E_c)
     E = E_g + cfg.a_c * E_c + cfg.a_q * E_q + cfg.a_pen * P
     return E, Terms(E, E_g, E_c, E_q, P, ok, c, basis)

@@ -134,7 +134,8 @@ def _scene_distance(sdf: GradientSDF, points: Float[Array, "P 3"]) -> Float[Arra
 
 
 def penetration_penalty(
-    hand: Hand, sdf: GradientSDF, wrist_pose: Float[Array, "4 4"], q: Float[Array, " Q"]
+    hand: Hand, sdf: GradientSDF, wrist_pose: Float[Array, "4 4"], q: Float[Array, " Q"],
+    frames: K.HandFrames | None = None,
 ) -> Float[Array, ""]:
     """Whole-hand collision penalty (metres^2): sum over collision spheres of max(0, r - d(c) - CONTACT_TOL)^2
     against object and table at q, plus sum over the q = 0 box corners of max(0, -d(v))^2 at the same wrist pose.
@@ -147,10 +148,11 @@ def penetration_penalty(
 
     Args:
         hand, sdf, wrist_pose, q: as in `hand_penetration`.
+        frames: `kinematics.forward_kinematics(hand, wrist_pose, q)`, if the caller has it (`collision_spheres`).
     Returns:
         () penalty, differentiable wrt q and the wrist pose.
     """
-    centres, radii = K.collision_spheres(hand, wrist_pose, q)
+    centres, radii = K.collision_spheres(hand, wrist_pose, q, frames)
     # Overlaps up to CONTACT_TOL are free: fingertip pads are meant to touch, and their contact points lie just
     # inside their capsules, so a penalty from zero depth would hold every fingertip off the surface E_c pulls it to.
     depth = jax.nn.relu(radii - _scene_distance(sdf, centres) - CONTACT_TOL)

@@ -190,10 +190,14 @@ def tetrahedron_points(hand: Hand, wrist_pose: Float[Array, "4 4"]) -> Float[Arr
 
 
 def collision_spheres(
-    hand: Hand, wrist_pose: Float[Array, "4 4"], q: Float[Array, " Q"]
+    hand: Hand, wrist_pose: Float[Array, "4 4"], q: Float[Array, " Q"], frames: HandFrames | None = None
 ) -> tuple[Float[Array, "S 3"], Float[Array, " S"]]:
-    """Centres (S, 3) in the world frame and radii (S,) of spheres covering the hand's collision geoms."""
-    frames = forward_kinematics(hand, wrist_pose, q)
+    """Centres (S, 3) in the world frame and radii (S,) of spheres covering the hand's collision geoms.
+
+    `frames`: `forward_kinematics(hand, wrist_pose, q)` if the caller has it already. Under autodiff this matters:
+    XLA merges two identical forward passes, but each keeps its own backward pass through MJX.
+    """
+    frames = forward_kinematics(hand, wrist_pose, q) if frames is None else frames
     rot = frames.body_rot[hand.sphere_body]
     centres = jnp.einsum("sij,sj->si", rot, hand.sphere_pos) + frames.body_pos[hand.sphere_body]
     return centres, hand.sphere_radius

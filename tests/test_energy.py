@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 
 from ffcgs_jax import energy as En
+from ffcgs_jax import filters as F
 from ffcgs_jax import kinematics as K
 from ffcgs_jax import mesh_io, quality
 from ffcgs_jax import sdf as sdf_mod
@@ -96,6 +97,7 @@ def test_energy_terms_sum_with_configured_weights(toy):
     d = np.asarray(distance_jit(target.sdf, c))
     np.testing.assert_allclose(float(t.E_c), np.sqrt(np.mean((d + D0) ** 2)), rtol=1e-7)
     np.testing.assert_allclose(float(t.E_q), float(En.joint_energy(hand, q)), rtol=RTOL_FORMULA)
+    np.testing.assert_allclose(float(t.P), float(jax.jit(F.penetration_penalty)(hand, target.sdf, H, q)), rtol=1e-12)
 
 
 def test_no_penalty_weight_means_no_penalty_term(toy):
