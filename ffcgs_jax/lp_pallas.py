@@ -135,8 +135,10 @@ def _kernel(A_ref, b0_ref, axes_ref, basis_ref, binv_ref, info_ref, *, K: int, n
                 stop, jnp.where(done, ok, optimal))
 
     def trip(state):
-        for _ in range(per_trip):
-            state = pivot(state)
+        # a trip's pivots end at the first stop: the ones after it would change nothing (as in the XLA loop, which
+        # must run them in lockstep), and each costs a few microseconds of reductions
+        _, state = lax.while_loop(lambda ks: (ks[0] < per_trip) & ~ks[1][4],
+                                  lambda ks: (ks[0] + 1, pivot(ks[1])), (jnp.zeros((), jnp.int32), state))
         basis, Binv, it, degenerate, done, ok = state
         Binv = _inverse(basis_matrix(basis), rows)[0]
         confirmed = ~_any(reduced_costs(basis, Binv) < -tol)
