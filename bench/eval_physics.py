@@ -101,25 +101,26 @@ def report(rows: list[dict]) -> None:
         md = lambda k, sc=1.0: f"{np.median(cat(k)[v]) * sc:.3f}" if v.any() else "-"  # noqa: E731
         print(f"| {s} | {int(v.sum())}/{len(v)} | {md('E')} | {md('E_g')} | {md('E_c', 100)} | {md('epsilon')} | "
               f"{(cat('epsilon')[v] > 0).mean():.1%} |")
-    print("\nDoes force closure on the mesh predict physics? Geometric sampler, pass rates by epsilon:\n")
-    print("| friction | protocol | valid, epsilon > 0 | valid, epsilon = 0 | not valid |")
-    print("|---|---|---|---|---|")
-    for mu in sorted({r["friction"] for r in rows}, reverse=True):
-        rs = [r for r in rows if r["sampler"] == "geometric" and r["friction"] == mu]
-        cat = lambda k: np.concatenate([np.asarray(r[k]) for r in rs])  # noqa: E731
-        v, fc = cat("valid").astype(bool), cat("epsilon") > 0
-        for p in ("lift_shake", "six_dir"):
-            ok = cat(f"{p}_success").astype(bool)
-            print(f"| {mu} | {p.replace('_', '-')} | {_rate(ok[v & fc])} | {_rate(ok[v & ~fc])} | {_rate(ok[~v])} |")
-    print("\nPer object, geometric sampler, valid grasps: lift-shake / six-dir passes of n\n")
-    for mu in sorted({r["friction"] for r in rows}, reverse=True):
-        cells = []
-        for r in sorted((r for r in rows if r["sampler"] == "geometric" and r["friction"] == mu),
-                        key=lambda r: r["object"]):
-            v = np.asarray(r["valid"], bool)
-            ls, sd = (int(np.asarray(r[f"{p}_success"], bool)[v].sum()) for p in ("lift_shake", "six_dir"))
-            cells.append(f"{r['object']} {ls}/{sd} of {int(v.sum())}")
-        print(f"- friction {mu}: " + ", ".join(cells))
+    if any(r["sampler"] == "geometric" for r in rows):  # the geometric sampler's sections need its rows
+        print("\nDoes force closure on the mesh predict physics? Geometric sampler, pass rates by epsilon:\n")
+        print("| friction | protocol | valid, epsilon > 0 | valid, epsilon = 0 | not valid |")
+        print("|---|---|---|---|---|")
+        for mu in sorted({r["friction"] for r in rows}, reverse=True):
+            rs = [r for r in rows if r["sampler"] == "geometric" and r["friction"] == mu]
+            cat = lambda k: np.concatenate([np.asarray(r[k]) for r in rs])  # noqa: E731
+            v, fc = cat("valid").astype(bool), cat("epsilon") > 0
+            for p in ("lift_shake", "six_dir"):
+                ok = cat(f"{p}_success").astype(bool)
+                print(f"| {mu} | {p.replace('_', '-')} | {_rate(ok[v & fc])} | {_rate(ok[v & ~fc])} | {_rate(ok[~v])} |")
+        print("\nPer object, geometric sampler, valid grasps: lift-shake / six-dir passes of n\n")
+        for mu in sorted({r["friction"] for r in rows}, reverse=True):
+            cells = []
+            for r in sorted((r for r in rows if r["sampler"] == "geometric" and r["friction"] == mu),
+                            key=lambda r: r["object"]):
+                v = np.asarray(r["valid"], bool)
+                ls, sd = (int(np.asarray(r[f"{p}_success"], bool)[v].sum()) for p in ("lift_shake", "six_dir"))
+                cells.append(f"{r['object']} {ls}/{sd} of {int(v.sum())}")
+            print(f"- friction {mu}: " + ", ".join(cells))
     print()
     for mu in sorted({r["friction"] for r in rows}, reverse=True):
         for p in ("lift_shake", "six_dir"):
