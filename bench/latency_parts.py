@@ -15,8 +15,6 @@ instructions of the descent loop's body in the optimised HLO that launch work: f
 
 import argparse
 import re
-import statistics
-import time
 
 import jax
 import jax.numpy as jnp
@@ -24,6 +22,7 @@ import jax.numpy as jnp
 from ffcgs_jax import grasp, mesh_io, quality
 from ffcgs_jax import kinematics as K
 from ffcgs_jax import sdf as S
+from ffcgs_jax.benchmark import time_synthesis
 from ffcgs_jax.config import GraspConfig, OptimConfig, SDFConfig
 from ffcgs_jax.energy import make_target
 
@@ -86,18 +85,11 @@ def main():
         patch(variant, hand)
         grasp._COMPILED.clear()
         jax.clear_caches()  # traced jaxprs do not see the patched module functions
-        cfg = GraspConfig(n=args.n, devices=1, optim=OptimConfig(iters=args.iters))
-        run, compile_s = grasp.compile_device(hand, target, cfg)
+        row = time_synthesis(hand, target, GraspConfig(n=args.n, devices=1, optim=OptimConfig(iters=args.iters)),
+                             args.repeats)
         kernels = step_kernels(next(iter(grasp._COMPILED.values())).as_text(), args.iters)
-        jax.block_until_ready(run(jax.random.PRNGKey(0)))
-        times = []
-        for i in range(args.repeats):
-            t0 = time.perf_counter()
-            jax.block_until_ready(run(jax.random.PRNGKey(i + 1)))
-            times.append(time.perf_counter() - t0)
-        print(f"| {variant} | {compile_s:.1f} | {statistics.median(times) * 1e3:.2f} | {min(times) * 1e3:.2f} | "
-              f"{kernels} |", flush=True)
-
+        print(f"| {variant} | {row.compile_s:.1f} | {row.median_s * 1e3:.2f} | {row.min_s * 1e3:.2f} | {kernels} |",
+              flush=True)
 
 if __name__ == "__main__":
     main()
