@@ -3,7 +3,7 @@
     python bench/accuracy_foundations.py [--ycb ../shared/objects/ycb] [--configs 1000] [--points 2000]
 
 The SDF part uses the YCB test split (sorted files at index % 5 == 4) and reports, per object and resolution, the
-error of `sdf.query` against trimesh's exact signed distance at points within 2 cm of the surface, in voxels.
+error of `geometry.sdf.query` against trimesh's exact signed distance at points within 2 cm of the surface, in voxels.
 """
 
 import argparse
@@ -20,9 +20,9 @@ import numpy as np  # noqa: E402
 import trimesh  # noqa: E402
 from scipy.spatial.transform import Rotation  # noqa: E402
 
-from ffcgs_jax import kinematics as K  # noqa: E402
-from ffcgs_jax import sdf  # noqa: E402
-from ffcgs_jax.config import SDFConfig  # noqa: E402
+from ffcgs_jax.geometry import sdf  # noqa: E402
+from ffcgs_jax.geometry.config import SDFConfig  # noqa: E402
+from ffcgs_jax.hand import kinematics as K  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
 

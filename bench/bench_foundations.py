@@ -17,9 +17,9 @@ import jax.numpy as jnp
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from ffcgs_jax import kinematics as K
-from ffcgs_jax import mesh_io, sdf
-from ffcgs_jax.config import SDFConfig
+from ffcgs_jax.geometry import mesh_io, sdf
+from ffcgs_jax.geometry.config import SDFConfig
+from ffcgs_jax.hand import kinematics as K
 
 REPO = Path(__file__).resolve().parents[1]
 DEFAULT_MESH = REPO.parent / "shared" / "objects" / "ycb" / "025_mug.stl"

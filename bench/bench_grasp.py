@@ -14,12 +14,12 @@ import platform
 
 import jax
 
-from ffcgs_jax import kinematics as K
-from ffcgs_jax import mesh_io, sdf
-from ffcgs_jax.benchmark import time_synthesis
-from ffcgs_jax.config import EnergyConfig, OptimConfig
-from ffcgs_jax.energy import make_target
-from ffcgs_jax.grasp import GraspConfig
+from ffcgs_jax.cli.benchmark import time_synthesis
+from ffcgs_jax.geometry import mesh_io, sdf
+from ffcgs_jax.hand import kinematics as K
+from ffcgs_jax.synthesis.config import EnergyConfig, OptimConfig
+from ffcgs_jax.synthesis.energy import make_target
+from ffcgs_jax.synthesis.grasp import GraspConfig
 
 METHODS = {
     "ours": (EnergyConfig(), OptimConfig()),

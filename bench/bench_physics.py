@@ -18,8 +18,12 @@ import time
 import jax
 import numpy as np
 
-from ffcgs_jax import hand_spec, mesh_io, physics
-from ffcgs_jax.config import PROTOCOLS, PhysicsConfig
+from ffcgs_jax.geometry import mesh_io
+from ffcgs_jax.hand import spec as hand_spec
+from ffcgs_jax.physics import backend_cpu
+from ffcgs_jax.physics import protocols as physics_protocols
+from ffcgs_jax.physics import runner as physics
+from ffcgs_jax.physics.config import PROTOCOLS, PhysicsConfig
 
 SHORT = {"close_time": 0.1, "settle_time": 0.05, "push_time": 0.1, "lift_height": 0.02, "shake_amplitude": 0.01,
          "shake_cycles": 1}
@@ -30,9 +34,9 @@ def load_grasps(args, mesh) -> tuple[np.ndarray, np.ndarray]:
         data = np.load(args.grasps)
         T, q = data["wrist_pose"], data["q"]
     else:
-        from ffcgs_jax import grasp
-        from ffcgs_jax import kinematics as K
-        from ffcgs_jax.config import GraspConfig
+        from ffcgs_jax.hand import kinematics as K
+        from ffcgs_jax.synthesis import grasp
+        from ffcgs_jax.synthesis.config import GraspConfig
 
         gs = grasp.synthesize(K.load_hand("svh"), mesh, GraspConfig(n=8), args.object)
         keep = np.flatnonzero(gs["valid"]) if gs["valid"].any() else np.arange(len(gs["valid"]))
@@ -42,11 +46,11 @@ def load_grasps(args, mesh) -> tuple[np.ndarray, np.ndarray]:
 
 
 def steps_per_grasp(batch, cfg: PhysicsConfig, protocol: str) -> int:
-    segs = physics.closing(batch, cfg)
+    segs = physics_protocols.closing(batch, cfg)
     if protocol == "lift-shake":
-        segs += physics.lift_shake(batch, cfg)
+        segs += physics_protocols.lift_shake(batch, cfg)
     else:
-        segs += [physics.push(batch, cfg, d, 1.0) for d in physics.DIRECTIONS]
+        segs += [physics_protocols.push(batch, cfg, d, 1.0) for d in physics_protocols.DIRECTIONS]
     return sum(s.n for s in segs)
 
 
@@ -71,17 +75,17 @@ def main():
     for backend in ("cpu", "mjx") if args.backend == "both" else (args.backend,):
         t0 = time.perf_counter()
         if backend == "cpu":
-            sim = physics.CpuSim(scene, cfg.workers)
+            sim = backend_cpu.CpuSim(scene, cfg.workers)
         else:
-            from ffcgs_jax.physics_mjx import MjxSim
+            from ffcgs_jax.physics.backend_mjx import MjxSim
 
             sim = MjxSim(scene)
-        res = physics.run_protocol(sim, batch, depth, cfg, args.protocol)
+        res = physics_protocols.run_protocol(sim, batch, depth, cfg, args.protocol)
         first = time.perf_counter() - t0
         times = []
         for _ in range(args.repeats):
             t0 = time.perf_counter()
-            physics.run_protocol(sim, batch, depth, cfg, args.protocol)
+            physics_protocols.run_protocol(sim, batch, depth, cfg, args.protocol)
             times.append(time.perf_counter() - t0)
         warm = statistics.median(times) if times else first
         rows.append((backend, args.n, first, warm, args.n / warm, args.n * steps / warm, res["success"].mean()))

@@ -14,10 +14,12 @@ import time
 import jax
 import numpy as np
 
-from ffcgs_jax import filters as F
-from ffcgs_jax import kinematics as K
-from ffcgs_jax import mesh_io, objects, samplers, sdf
-from ffcgs_jax.config import SamplerConfig, SDFConfig
+from ffcgs_jax.geometry import mesh_io, objects, sdf
+from ffcgs_jax.geometry.config import SDFConfig
+from ffcgs_jax.hand import kinematics as K
+from ffcgs_jax.synthesis import filters as F
+from ffcgs_jax.synthesis import samplers
+from ffcgs_jax.synthesis.config import SamplerConfig
 
 
 def main() -> None:

@@ -4,8 +4,8 @@
     XLA_FLAGS=--xla_cpu_use_onednn=true python bench/conv_vs_matmul.py   # the same with an XLA flag
 
 The decoder's first convolution after its pooled first layer is 3x3x3, 32 -> 32 channels on an 8^3 volume per
-candidate (`cvae.fcn_head`, head = 32 at the shipped size). Rows: that convolution (and the 4^3 one after it) as
-XLA runs it; the same FLOPs as one (B * 512, 864) @ (864, 32) matmul; and the convolution written as im2col (27
+candidate (`learning.cvae.fcn_head`, head = 32 at the shipped size). Rows: that convolution (and the 4^3 one after
+it) as XLA runs it; the same FLOPs as one (B * 512, 864) @ (864, 32) matmul; and the convolution written as im2col (27
 shifted copies concatenated) plus that matmul. Median of `repeats` warm calls, GFLOP/s counted as 2 multiply-adds.
 """
 

@@ -19,10 +19,12 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from ffcgs_jax import kinematics as K
-from ffcgs_jax import grasp_io, mesh_io, metrics, objects
-from ffcgs_jax.config import EnergyConfig, OptimConfig, SamplerConfig
-from ffcgs_jax.grasp import GraspConfig, synthesize
+from ffcgs_jax.evaluation import metrics
+from ffcgs_jax.geometry import mesh_io, objects
+from ffcgs_jax.hand import kinematics as K
+from ffcgs_jax.synthesis import grasp_io
+from ffcgs_jax.synthesis.config import EnergyConfig, OptimConfig, SamplerConfig
+from ffcgs_jax.synthesis.grasp import GraspConfig, synthesize
 
 REPO = Path(__file__).resolve().parents[1]
 METHODS = {

@@ -18,8 +18,13 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from ffcgs_jax import grasp_io, hand_spec, mesh_io, metrics, objects, physics
-from ffcgs_jax.config import PhysicsConfig
+from ffcgs_jax.evaluation import metrics
+from ffcgs_jax.geometry import mesh_io, objects
+from ffcgs_jax.hand import spec as hand_spec
+from ffcgs_jax.physics import protocols as physics_protocols
+from ffcgs_jax.physics import runner as physics
+from ffcgs_jax.physics.config import PhysicsConfig
+from ffcgs_jax.synthesis import grasp_io
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -64,7 +69,7 @@ def _rate(ok: np.ndarray) -> str:
     k, n = int(ok.sum()), len(ok)
     if n == 0:
         return "- (0)"
-    lo, hi = physics.wilson(k, n)
+    lo, hi = physics_protocols.wilson(k, n)
     return f"{100 * k / n:.1f} % ({k}/{n}; {100 * lo:.0f}-{100 * hi:.0f})"
 
 

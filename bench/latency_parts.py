@@ -19,12 +19,14 @@ import re
 import jax
 import jax.numpy as jnp
 
-from ffcgs_jax import grasp, mesh_io, quality
-from ffcgs_jax import kinematics as K
-from ffcgs_jax import sdf as S
-from ffcgs_jax.benchmark import time_synthesis
-from ffcgs_jax.config import GraspConfig, OptimConfig, SDFConfig
-from ffcgs_jax.energy import make_target
+from ffcgs_jax.cli.benchmark import time_synthesis
+from ffcgs_jax.geometry import mesh_io
+from ffcgs_jax.geometry import sdf as S
+from ffcgs_jax.geometry.config import SDFConfig
+from ffcgs_jax.hand import kinematics as K
+from ffcgs_jax.synthesis import grasp, quality
+from ffcgs_jax.synthesis.config import GraspConfig, OptimConfig
+from ffcgs_jax.synthesis.energy import make_target
 
 VARIANTS = ("full", "no-lp", "no-mjx")
 _NOT_KERNELS = {"parameter", "get-tuple-element", "tuple", "bitcast", "constant"}

@@ -14,7 +14,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ffcgs_jax import lp_jax, quality
+from ffcgs_jax.synthesis import lp_jax, quality
 
 
 def main() -> None:

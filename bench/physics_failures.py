@@ -5,7 +5,7 @@
 
 From the rows of bench/eval_physics.py (geometric sampler, friction 0.6, valid grasps) it takes the first grasp of
 each kind: lift-shake success, lift-shake `lost`, six-dir `slip`, six-dir `lost`; replays each trial
-(`physics_video.record`) and puts three frames side by side: fingers closed, halfway through the test, end.
+(`physics.video.record`) and puts three frames side by side: fingers closed, halfway through the test, end.
 """
 
 import argparse
@@ -16,15 +16,20 @@ from pathlib import Path
 import numpy as np
 from PIL import Image
 
-from ffcgs_jax import grasp_io, hand_spec, mesh_io, physics, physics_video
-from ffcgs_jax.config import PhysicsConfig
+from ffcgs_jax.geometry import mesh_io
+from ffcgs_jax.hand import spec as hand_spec
+from ffcgs_jax.physics import protocols as physics_protocols
+from ffcgs_jax.physics import runner as physics
+from ffcgs_jax.physics import video as physics_video
+from ffcgs_jax.physics.config import PhysicsConfig
+from ffcgs_jax.synthesis import grasp_io
 
 REPO = Path(__file__).resolve().parents[1]
 KINDS = [("lift-shake", 0, "held"), ("lift-shake", 2, "lost"), ("six-dir", 3, "slip"), ("six-dir", 2, "lost")]
 
 
 def pick(rows, protocol: str, reason: int):
-    key = physics.result_key(protocol, "reason")
+    key = physics_protocols.result_key(protocol, "reason")
     for r in rows:
         if r["sampler"] == "geometric" and r["friction"] == 0.6:
             hits = np.flatnonzero(np.asarray(r["valid"], bool) & (np.asarray(r[key]) == reason))

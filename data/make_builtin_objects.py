@@ -1,4 +1,4 @@
-"""Generate the built-in objects in ffcgs_jax/assets/objects/<name>.ply.
+"""Generate the built-in objects in ffcgs_jax/geometry/assets/objects/<name>.ply.
 
 Run once from the repository root (needs `pip install manifold3d`, a dev-only tool used for the mug's boolean
 union; the package itself never imports it):
@@ -15,7 +15,7 @@ import manifold3d
 import numpy as np
 import trimesh
 
-OUT = pathlib.Path(__file__).resolve().parent.parent / "ffcgs_jax" / "assets" / "objects"
+OUT = pathlib.Path(__file__).resolve().parent.parent / "ffcgs_jax" / "geometry" / "assets" / "objects"
 
 
 def revolve(profile: list[tuple[float, float]], segments: int) -> manifold3d.Manifold:

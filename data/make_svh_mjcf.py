@@ -1,4 +1,4 @@
-"""Write the Schunk SVH MJCF and hand spec shipped in `ffcgs_jax/assets/hands/svh/` from `shared/svh/`.
+"""Write the Schunk SVH MJCF and hand spec shipped in `ffcgs_jax/hand/assets/svh/` from `shared/svh/`.
 
 Run from the repo root:  python data/make_svh_mjcf.py [--svh ../shared/svh]
 
@@ -28,7 +28,7 @@ import numpy as np
 import trimesh
 from scipy.spatial.transform import Rotation
 
-OUT = Path(__file__).resolve().parents[1] / "ffcgs_jax" / "assets" / "hands" / "svh"
+OUT = Path(__file__).resolve().parents[1] / "ffcgs_jax" / "hand" / "assets" / "svh"
 FINGER_SITE = {"thumb": "thumb_tip", "index": "index_tip", "middle": "middle_tip", "ring": "ring_tip",
                "little": "little_tip"}
 PALM_SLABS = {"e1": 3, "e2": 3}  # palm parts: boxes fitted to vertex slabs along z

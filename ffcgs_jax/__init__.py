@@ -1,3 +1,58 @@
-"""ffcgs-jax: fast force-closure precision grasps for anthropomorphic hands, in JAX with MuJoCo MJX."""
+"""ffcgs-jax: fast force-closure precision grasps for anthropomorphic hands, in JAX with MuJoCo MJX.
+
+The public API is the handful of names below; each is imported on first use, so `import ffcgs_jax` stays fast
+(no JAX, MuJoCo or trimesh until a name is touched). Everything else lives in the subpackages, one per stage:
+`hand`, `geometry`, `learning`, `synthesis`, `evaluation`, `physics`, `dataset`, `viz`, `cli`
+(docs/architecture.md).
+
+    import ffcgs_jax as fj
+    hand, mesh = fj.load_hand("svh"), fj.load_mesh("mug")
+    gs = fj.synthesize(hand, mesh, fj.GraspConfig(n=32))
+"""
+
+import importlib
+from typing import TYPE_CHECKING
 
 __version__ = "0.1.0"
+
+# public name -> (module, attribute)
+_API = {
+    "load_hand": ("ffcgs_jax.hand.kinematics", "load_hand"),
+    "load_mesh": ("ffcgs_jax.geometry.mesh_io", "load_mesh"),
+    "build_sdf": ("ffcgs_jax.geometry.sdf", "build_sdf"),
+    "synthesize": ("ffcgs_jax.synthesis.grasp", "synthesize"),
+    "evaluate_physics": ("ffcgs_jax.physics.runner", "evaluate"),
+    "GraspConfig": ("ffcgs_jax.synthesis.config", "GraspConfig"),
+    "OptimConfig": ("ffcgs_jax.synthesis.config", "OptimConfig"),
+    "EnergyConfig": ("ffcgs_jax.synthesis.config", "EnergyConfig"),
+    "SDFConfig": ("ffcgs_jax.geometry.config", "SDFConfig"),
+    "PhysicsConfig": ("ffcgs_jax.physics.config", "PhysicsConfig"),
+    "FfcgsError": ("ffcgs_jax.errors", "FfcgsError"),
+    "enable_compilation_cache": ("ffcgs_jax.cli.jax_cache", "enable"),
+}
+__all__ = ["__version__", *_API]
+
+if TYPE_CHECKING:  # what the lazy names are, for type checkers and editors
+    from ffcgs_jax.cli.jax_cache import enable as enable_compilation_cache  # noqa: F401
+    from ffcgs_jax.errors import FfcgsError  # noqa: F401
+    from ffcgs_jax.geometry.config import SDFConfig  # noqa: F401
+    from ffcgs_jax.geometry.mesh_io import load_mesh  # noqa: F401
+    from ffcgs_jax.geometry.sdf import build_sdf  # noqa: F401
+    from ffcgs_jax.hand.kinematics import load_hand  # noqa: F401
+    from ffcgs_jax.physics.config import PhysicsConfig  # noqa: F401
+    from ffcgs_jax.physics.runner import evaluate as evaluate_physics  # noqa: F401
+    from ffcgs_jax.synthesis.config import EnergyConfig, GraspConfig, OptimConfig  # noqa: F401
+    from ffcgs_jax.synthesis.grasp import synthesize  # noqa: F401
+
+
+def __getattr__(name: str):
+    if name not in _API:
+        raise AttributeError(f"module 'ffcgs_jax' has no attribute {name!r}; its public names: {', '.join(_API)}")
+    module, attr = _API[name]
+    value = getattr(importlib.import_module(module), attr)
+    globals()[name] = value  # the next lookup skips __getattr__
+    return value
+
+
+def __dir__() -> list[str]:
+    return sorted(set(globals()) | set(_API))

@@ -1,7 +1,7 @@
 """Test-wide JAX settings: float64 references and no silent rank promotion (set at import, before any test).
 
 The CLI's persistent compilation cache is off for the suite (tests must not write to the user's home);
-tests/test_jax_cache.py turns it on in a folder of its own."""
+tests/cli/test_jax_cache.py turns it on in a folder of its own."""
 
 import os
 

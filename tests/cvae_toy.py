@@ -3,7 +3,8 @@ around each object facing its centre (so the pose is a learnable function of the
 
 import numpy as np
 
-from ffcgs_jax import dataset_io as dio
+from ffcgs_jax.dataset import mcap_io as dio
+from ffcgs_jax.dataset import schema
 
 RES = 8
 
@@ -40,7 +41,7 @@ def make_toy_dataset(path, n_objects: int = 5, grasps: int = 8, seed: int = 0, r
         noisy = poses.copy()
         noisy[:, :3, 3] += rng.normal(0, 0.002, (grasps, 3))
         z = np.zeros(grasps)
-        w.add(dio.Record.create(object_name=f"toy{i}", mesh_sha256="0" * 64, rotation_index=0, rotation=np.eye(3),
+        w.add(schema.Record.create(object_name=f"toy{i}", mesh_sha256="0" * 64, rotation_index=0, rotation=np.eye(3),
                                 split="train", grid=grid, origin=origin, voxel_size=h,
                                 table_z=0.0, wrist_pose=poses, q=np.zeros((grasps, 9)), epsilon=z, E=z,
                                 E_g=z, E_c=z, wrist_pose_noisy=noisy))

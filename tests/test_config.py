@@ -4,8 +4,10 @@ import dataclasses
 
 import pytest
 
-from ffcgs_jax.config import RenderConfig, SDFConfig, from_dict, load
+from ffcgs_jax.config import from_dict, load
 from ffcgs_jax.errors import FfcgsError
+from ffcgs_jax.geometry.config import SDFConfig
+from ffcgs_jax.viz.config import RenderConfig
 
 
 @dataclasses.dataclass(frozen=True)

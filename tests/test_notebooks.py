@@ -7,14 +7,15 @@ shadow the venv (ipykernel's own spec in the venv would also work in a fresh `pi
 
 import json
 import os
-import pathlib
 import sys
 
 import nbclient
 import nbformat
 import pytest
 
-NOTEBOOKS = sorted((pathlib.Path(__file__).parent.parent / "notebooks").glob("*.ipynb"))
+from paths import REPO
+
+NOTEBOOKS = sorted((REPO / "notebooks").glob("*.ipynb"))
 SLOW: list[str] = []  # notebook file names too slow for the default suite; run with -m slow
 SMALL = {"FFCGS_NB_N": "4", "FFCGS_NB_ITERS": "5", "FFCGS_NB_RES": "16", "FFCGS_NB_OBJECT": "box"}
 

@@ -19,17 +19,16 @@ from pathlib import Path
 import numpy as np
 import tyro
 
-from ffcgs_jax import cvae_data
-from ffcgs_jax.cli import _split_config
-from ffcgs_jax.config import _coerce, check_all, load
-from ffcgs_jax.cvae_train import train
+from ffcgs_jax.config import _coerce, check_all, load, split_config_arg
 from ffcgs_jax.errors import FfcgsError
-from ffcgs_jax.train_config import TrainConfig
+from ffcgs_jax.learning import data as cvae_data
+from ffcgs_jax.learning.config import TrainConfig
+from ffcgs_jax.learning.train import train
 
 
 def split_args(argv: list[str]) -> tuple[str | None, list[str], list[str]]:
     """(--config path, sweep specs "key=v1,v2", the remaining override flags)."""
-    path, argv = _split_config(argv)  # the same --config handling as the `ffcgs` commands
+    path, argv = split_config_arg(argv)  # the same --config handling as the `ffcgs` commands
     sweep, rest = [], []
     i = 0
     while i < len(argv):

@@ -1,0 +1,507 @@
+"""The `ffcgs` subcommands: one frozen dataclass of options and one run function per job (`COMMANDS`).
+
+Parsing and the entry point are `cli.main`'s.
+"""
+
+import dataclasses
+import json
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+import tyro
+
+from ffcgs_jax.dataset.config import DatasetConfig
+from ffcgs_jax.errors import FfcgsError
+from ffcgs_jax.geometry.config import SDFConfig
+from ffcgs_jax.physics import protocols as physics_protocols
+from ffcgs_jax.physics.config import PROTOCOLS, PhysicsConfig
+from ffcgs_jax.synthesis.config import GraspConfig
+from ffcgs_jax.viz.config import RenderConfig
+
+
+@dataclasses.dataclass(frozen=True)
+class ObjectsCmd:
+    """List the built-in objects (usable by name wherever an object is asked for)."""
+
+
+@dataclasses.dataclass(frozen=True)
+class SdfCmd:
+    """Write the Gradient-SDF of an object (built-in name or mesh file) to an .npz file.
+
+    Attributes:
+        object: built-in name (see `ffcgs objects`) or a mesh file (obj, stl, ply, off, glb).
+        out: output .npz (grid (R,R,R,4): distance and gradient; origin; voxel_size; table_z).
+        png: also draw mid-slices of the distance field to this PNG.
+        sdf: grid settings.
+    """
+
+    object: tyro.conf.Positional[str] = tyro.MISSING
+    out: str = "sdf.npz"
+    png: str | None = None
+    sdf: SDFConfig = SDFConfig()
+
+
+@dataclasses.dataclass(frozen=True)
+class HandCmd:
+    """Pose the hand (optionally beside an object) and draw it to a PNG; print its fingertip contact points.
+
+    Attributes:
+        q: channel values in hand-spec order (rad), e.g. 9 numbers for the SVH; default all 0 (open hand).
+        close: when q is not given, set every channel to lower + close * (upper - lower), 0..1.
+        wrist: wrist pose as X Y Z ROLL PITCH YAW (metres, radians; URDF fixed-axis rpy). Default: the identity,
+            or with an object the palm facing down 3 cm above it.
+        object: built-in name or mesh file to draw with the hand; it rests on a table at its lowest point.
+        hand: built-in hand name or a hand-spec TOML.
+        png: output picture.
+        views: any of front, side, top.
+        scale: multiplies the object's coordinates (0.001 for millimetre meshes).
+    """
+
+    q: tuple[float, ...] | None = None
+    close: float = 0.0
+    wrist: tuple[float, float, float, float, float, float] | None = None
+    object: str | None = None
+    hand: str = "svh"
+    png: str = "hand.png"
+    views: tuple[str, ...] = ("front", "side", "top")
+    scale: float = 1.0
+    render: RenderConfig = RenderConfig()
+
+
+@dataclasses.dataclass(frozen=True)
+class BenchCmd:
+    """Time grasp synthesis on this machine (latency, throughput, compile, CLI start) and write bench/RESULTS.md.
+
+    Attributes:
+        object: built-in name or mesh file; its Gradient-SDF is built first and not timed.
+        res: the Gradient-SDF's resolution (the paper's 32).
+        iters: descent steps per grasp (the issue's figures: 50).
+        batches: poses per batch, one row each; default 32 1024 8192 65536 on a GPU, 32 256 1024 on a CPU.
+        lp_solvers: LP paths to time ("jax", "proxsuite").
+        max_proxsuite_batch: skip larger batches for the host LP (it is host-bound: about 0.4 ms per LP).
+        devices: device counts to time the "jax" rows with (scaling); default 1, and all local devices when
+            there are several.
+        repeats: warm calls per row; the median is reported.
+        sampler: wrist-pose sampler (cvae, geometric, random).
+        backend: "default" (JAX's choice: the GPU when there is one), "cpu" or "gpu".
+        cli_start: also time a cold and a warm `ffcgs grasp` in fresh processes.
+        results: Markdown file to put this machine's block into ("" = print only).
+        json: also write the report as JSON here.
+    """
+
+    object: str = "mug"
+    res: int = 32
+    iters: int = 50
+    batches: tuple[int, ...] = ()
+    lp_solvers: tuple[str, ...] = ("jax", "proxsuite")
+    max_proxsuite_batch: int = 256
+    devices: tuple[int, ...] = ()
+    repeats: int = 5
+    sampler: str = "cvae"
+    backend: str = "default"
+    cli_start: bool = True
+    results: str = "bench/RESULTS.md"
+    json: str | None = None
+
+    def check(self) -> None:
+        from ffcgs_jax.synthesis.config import LP_SOLVERS
+
+        if self.backend not in ("default", "cpu", "gpu"):
+            raise FfcgsError(f"--backend must be default, cpu or gpu, got {self.backend!r}")
+        GraspConfig(sampler=self.sampler).check()
+        for s in self.lp_solvers:
+            if s not in LP_SOLVERS:
+                raise FfcgsError(f"unknown LP solver {s!r}; solvers: {', '.join(LP_SOLVERS)}")
+        if not self.lp_solvers:
+            raise FfcgsError("--lp-solvers needs at least one solver")
+        for name, values, hi in (("batches", self.batches, 1_000_000), ("devices", self.devices, 4096)):
+            if any(isinstance(v, bool) or not 1 <= v <= hi for v in values):
+                raise FfcgsError(f"--{name} must be integers in [1, {hi}], got {' '.join(map(str, values))}")
+        SDFConfig(res=self.res).check()
+        if not 1 <= self.iters <= 100_000 or not 1 <= self.repeats <= 1000:
+            raise FfcgsError(f"--iters and --repeats must be >= 1, got {self.iters} and {self.repeats}")
+
+
+def run_bench(cmd: BenchCmd) -> None:
+    import jax
+
+    from ffcgs_jax.cli import benchmark
+
+    if cmd.backend == "cpu":  # before JAX starts a backend
+        jax.config.update("jax_platforms", "cpu")
+    elif cmd.backend == "gpu" and jax.default_backend() != "gpu":
+        raise FfcgsError(f"--backend gpu: JAX found no GPU (its backend is {jax.default_backend()})")
+    report = benchmark.run(cmd)
+    print()
+    print(benchmark.markdown(report))
+    if cmd.results:
+        benchmark.write_results(cmd.results, report)
+        print(f"wrote {cmd.results} (block '{benchmark.machine_key(report['machine'])}')")
+    if cmd.json:
+        benchmark.save_json(report, cmd.json)
+        print(f"wrote {cmd.json}")
+
+
+def run_objects(cmd: ObjectsCmd) -> None:
+    from ffcgs_jax.geometry import objects
+
+    print(f"{'name':<10} {'faces':>6} {'extents (cm)':>20} {'volume (cm3)':>13} {'watertight':>10}")
+    for o in objects.describe():
+        ext = " x ".join(f"{e * 100:.1f}" for e in o["extents"])
+        print(f"{o['name']:<10} {o['faces']:>6} {ext:>20} {o['volume'] * 1e6:>13.1f} {str(o['watertight']):>10}")
+
+
+def run_sdf(cmd: SdfCmd) -> None:
+    from ffcgs_jax.geometry import mesh_io, sdf
+
+    mesh = mesh_io.load_mesh(cmd.object, scale=cmd.sdf.scale)
+    t0 = time.perf_counter()
+    grid = sdf.build_sdf(mesh, cmd.sdf)
+    dt = time.perf_counter() - t0
+    sdf.save(grid, cmd.out)
+    r = cmd.sdf.res
+    print(f"wrote {cmd.out}: {r}^3 Gradient-SDF of {cmd.object}, voxel {float(grid.voxel_size) * 1000:.2f} mm, "
+          f"built in {dt:.2f} s")
+    if cmd.png:
+        from ffcgs_jax.viz.render import save_png
+        from ffcgs_jax.viz.sdf_plot import slices_image
+
+        save_png(slices_image(grid), cmd.png)
+        print(f"wrote {cmd.png}")
+
+
+def run_hand(cmd: HandCmd) -> None:
+    from ffcgs_jax.hand import kinematics as K
+    from ffcgs_jax.viz import render, scene
+
+    if not 0 <= cmd.close <= 1:
+        raise FfcgsError(f"--close must be in [0, 1], got {cmd.close}")
+    unknown = [v for v in cmd.views if v not in render.VIEWS]
+    if unknown or not cmd.views:
+        raise FfcgsError(f"--views: unknown view(s) {unknown}; valid: {', '.join(render.VIEWS)}")
+    hand = K.load_hand(cmd.hand)
+    lo, hi = np.asarray(hand.lower), np.asarray(hand.upper)
+    q = K.check_q(hand, cmd.q, "--q") if cmd.q is not None else lo + cmd.close * (hi - lo)
+    outside = np.flatnonzero((q < lo - 1e-9) | (q > hi + 1e-9))
+    if outside.size:
+        names = [hand.spec.channel_names[i] for i in outside]
+        raise FfcgsError(f"--q outside the joint limits for channel(s) {names}: "
+                         + ", ".join(f"{n} in [{lo[i]:.4g}, {hi[i]:.4g}]" for n, i in zip(names, outside)))
+    obj = None
+    if cmd.object is not None:
+        from ffcgs_jax.geometry import mesh_io
+
+        obj = mesh_io.load_mesh(cmd.object, scale=cmd.scale)
+    if cmd.wrist is not None:
+        T = pose_from_xyzrpy(cmd.wrist)
+    elif obj is not None:
+        m, d = scene.build_scene(hand.spec, np.eye(4))
+        scene.set_channels(m, d, np.asarray(hand.coupling), q)
+        T = scene.default_wrist_pose(obj, d.site_xpos[hand.palm_site_id], np.asarray(hand.palm_normal))
+    else:
+        T = np.eye(4)
+    # One picture needs one FK: MuJoCo C gives it without JIT compilation (tests hold MJX equal to it).
+    m, d = scene.build_scene(hand.spec, T, obj, table_z=None if obj is None else float(obj.bounds[0, 2]))
+    scene.set_channels(m, d, np.asarray(hand.coupling), q)
+    image, backend = render.render_scene(m, d, cmd.render.width, cmd.render.height, cmd.render.backend, cmd.views)
+    render.save_png(image, cmd.png)
+    contacts = d.site_xpos[list(hand.contact_site_ids)]
+    print(f"{'contact site':<14} {'x (m)':>9} {'y (m)':>9} {'z (m)':>9}")
+    for name, p in zip(hand.spec.contact_sites, contacts):
+        print(f"{name:<14} {p[0]:>9.4f} {p[1]:>9.4f} {p[2]:>9.4f}")
+    print(f"wrote {cmd.png} ({backend} renderer)")
+
+
+def pose_from_xyzrpy(v) -> np.ndarray:
+    from scipy.spatial.transform import Rotation
+
+    v = np.asarray(v, float)
+    if v.shape != (6,) or not np.isfinite(v).all():
+        raise FfcgsError(f"--wrist needs 6 finite numbers X Y Z ROLL PITCH YAW, got {v.tolist()}")
+    T = np.eye(4)
+    T[:3, :3] = Rotation.from_euler("xyz", v[3:]).as_matrix()
+    T[:3, 3] = v[:3]
+    return T
+
+
+@dataclasses.dataclass(frozen=True)
+class GraspCmd:
+    """Synthesise force-closure grasps of an object: sample wrist poses, optimise the fingers, filter, evaluate.
+
+    Attributes:
+        object: built-in name (see `ffcgs objects`) or a mesh file (obj, stl, ply, off, glb), metres, z up.
+        out: grasp arrays (.npz; fields in README).
+        mcap: also write an MCAP log of the run (config, per-iteration energies, grasps).
+        png: also draw the best grasps to this PNG.
+        poses: optimise these wrist poses instead of sampling: .npy of shape (B, 4, 4), or .npz with
+            `wrist_pose` (e.g. a previous grasps.npz), object frame.
+        hand: built-in hand name or a hand-spec TOML.
+        grasp: synthesis settings (flags without prefix: --n, --sampler, --iters, --res, --d0, ...).
+    """
+
+    object: tyro.conf.Positional[str] = tyro.MISSING
+    out: str = "grasps.npz"
+    mcap: str | None = None
+    png: str | None = None
+    poses: str | None = None
+    hand: str = "svh"
+    validate: bool = False
+    protocol: str = "both"
+    grasp: GraspConfig = GraspConfig()
+    physics: PhysicsConfig = PhysicsConfig()
+
+    def check(self) -> None:
+        _protocols(self.protocol)
+
+
+def _protocols(name: str) -> tuple[str, ...]:
+    if name == "both":
+        return PROTOCOLS
+    if name not in PROTOCOLS:
+        raise FfcgsError(f"unknown protocol {name!r}; protocols: {', '.join(PROTOCOLS)}, both")
+    return (name,)
+
+
+def _print_rows(rows: list[tuple[str, str]]) -> None:
+    width = max(len(k) for k, _ in rows)
+    for k, v in rows:
+        print(f"{k:<{width}}  {v}")
+
+
+def run_grasp(cmd: GraspCmd) -> None:
+    from ffcgs_jax.geometry import mesh_io
+    from ffcgs_jax.hand import kinematics as K
+    from ffcgs_jax.synthesis import grasp_io
+    from ffcgs_jax.synthesis.grasp import summary_rows, synthesize
+
+    hand = K.load_hand(cmd.hand)
+    mesh = mesh_io.load_mesh(cmd.object, scale=cmd.grasp.sdf.scale)
+    poses = None if cmd.poses is None else _read_poses(cmd.poses)
+    gs = synthesize(hand, mesh, cmd.grasp, Path(cmd.object).stem, poses=poses)
+    rows = summary_rows(gs)
+    if cmd.validate:
+        gs, physics_rows = _validate(gs, hand.spec, mesh, cmd)
+        rows += physics_rows
+    grasp_io.save_npz(gs, cmd.out)
+    _print_rows(rows)
+    print(f"wrote {cmd.out}")
+    if cmd.mcap:
+        grasp_io.write_mcap(gs, cmd.mcap, hand.spec.name, rows)
+        print(f"wrote {cmd.mcap}")
+    if cmd.png:
+        from ffcgs_jax.viz import grasp_plot, render
+
+        image, _ = grasp_plot.grasps_image(hand, mesh, gs)
+        render.save_png(image, cmd.png)
+        print(f"wrote {cmd.png}")
+
+
+def _validate(gs, spec, mesh, cmd: GraspCmd):
+    """Physics-test the valid grasps and keep only those that pass every protocol asked for."""
+
+    protocols = _protocols(cmd.protocol)
+    idx = np.flatnonzero(gs["valid"])
+    if len(idx) == 0:
+        return gs.select(idx), [("kept after --validate", "0 of 0 valid grasps")]
+    t0 = time.perf_counter()
+    res = _run_physics(spec, mesh, gs["wrist_pose"][idx], gs["q"][idx], cmd.physics, protocols, "cpu")
+    passed = np.logical_and.reduce([res[physics_protocols.result_key(p, "success")] for p in protocols])
+    kept = gs.select(idx[passed])
+    for k, v in res.items():
+        kept.arrays[k] = v[passed]
+    rows = physics_protocols.summary_rows(res, protocols)
+    rows.append(("kept after --validate", f"{int(passed.sum())} of {len(idx)} valid grasps"
+                 f" ({time.perf_counter() - t0:.1f} s)"))
+    return kept, rows
+
+
+def _run_physics(spec, mesh, wrist_pose, q, cfg: PhysicsConfig, protocols, backend: str) -> dict:
+    from tqdm import tqdm
+
+    from ffcgs_jax.physics import runner as physics
+
+    with tqdm(total=len(q) * len(protocols), desc="physics", unit="grasp", disable=None, leave=False) as bar:
+        return physics.evaluate(spec, mesh, wrist_pose, q, cfg, protocols, backend, progress=bar.update)
+
+
+@dataclasses.dataclass(frozen=True)
+class EvalCmd:
+    """Physics test of grasps in MuJoCo (lift-shake, six-dir): success rates with 95 % Wilson intervals.
+
+    Attributes:
+        grasps: a grasps.npz from `ffcgs grasp` (wrist_pose, q). Per-grasp results are added to it (or `--out`).
+        object: the object the grasps are for: built-in name or mesh file; default the npz's object name.
+        protocol: lift-shake, six-dir or both.
+        out: write the npz with results here instead of updating `grasps`.
+        video: also record one trial of the first protocol to this .gif or .mp4.
+        video_index: which grasp the video shows; default the first valid grasp that passed (else the first).
+        all: test every grasp, not only those marked valid by the synthesis.
+        backend: cpu (MuJoCo, threads) or mjx (MuJoCo MJX on the JAX device).
+        hand: built-in hand name or a hand-spec TOML.
+        scale: multiplies the object's coordinates (0.001 for millimetre meshes).
+        physics: simulation and success-rule settings (flags without prefix: --friction, --mass, ...).
+    """
+
+    grasps: tyro.conf.Positional[str] = tyro.MISSING
+    object: str | None = None
+    protocol: str = "both"
+    out: str | None = None
+    video: str | None = None
+    video_index: int | None = None
+    all: bool = False
+    backend: str = "cpu"
+    hand: str = "svh"
+    scale: float = 1.0
+    physics: PhysicsConfig = PhysicsConfig()
+
+    def check(self) -> None:
+        _protocols(self.protocol)
+        if self.backend not in ("cpu", "mjx"):
+            raise FfcgsError(f"unknown backend {self.backend!r}; backends: cpu, mjx")
+        if self.video is not None and Path(self.video).suffix.lower() not in (".gif", ".mp4"):
+            raise FfcgsError(f"--video must end in .gif or .mp4, got {self.video}")
+
+
+def run_eval(cmd: EvalCmd) -> None:
+    from ffcgs_jax.geometry import mesh_io, objects
+    from ffcgs_jax.hand import spec as hand_spec
+    from ffcgs_jax.physics import runner as physics
+    from ffcgs_jax.synthesis import grasp_io
+
+    data = grasp_io.load_npz(cmd.grasps)
+    missing = [k for k in ("wrist_pose", "q") if k not in data]
+    if missing:
+        raise FfcgsError(f"{cmd.grasps} has no {' or '.join(missing)} array: is it a grasps.npz from ffcgs grasp?")
+    name = cmd.object
+    if name is None:
+        stored = str(data.get("object_name", ""))
+        if stored not in objects.names():
+            raise FfcgsError(f"{cmd.grasps} does not name a built-in object ({stored!r}): pass --object")
+        name = stored
+    spec = hand_spec.load_spec(cmd.hand)
+    mesh = mesh_io.load_mesh(name, scale=cmd.scale)
+    protocols = _protocols(cmd.protocol)
+    valid = np.asarray(data["valid"], bool) if "valid" in data else np.ones(len(data["q"]), bool)
+    idx = np.arange(len(valid)) if cmd.all else np.flatnonzero(valid)
+    if len(idx) == 0:
+        raise FfcgsError(f"{cmd.grasps} has no valid grasps to test (use --all to test them anyway)")
+    t0 = time.perf_counter()
+    res = _run_physics(spec, mesh, data["wrist_pose"][idx], data["q"][idx], cmd.physics, protocols, cmd.backend)
+    seconds = time.perf_counter() - t0
+    n = len(valid)
+    for k, v in res.items():  # grasps not tested get NaN / False / reason -1
+        full = np.full((n, *v.shape[1:]), False if v.dtype == bool else (-1 if v.dtype.kind == "i" else np.nan),
+                       dtype=v.dtype)
+        full[idx] = v
+        data[k] = full
+    data["physics_tested"] = np.isin(np.arange(n), idx)
+    data["physics_config_json"] = np.array(json.dumps(dataclasses.asdict(cmd.physics)))
+    out = cmd.out or cmd.grasps
+    grasp_io.save_arrays(data, out)
+    rows = physics_protocols.summary_rows(res, protocols)
+    rows.append(("grasps tested", f"{len(idx)} ({'all' if cmd.all else 'valid'}) in {seconds:.1f} s, "
+                 f"{len(idx) * len(protocols) / seconds:.2f} trials/s, backend {cmd.backend}"))
+    _print_rows(rows)
+    print(f"wrote {out}")
+    if cmd.video:
+        from ffcgs_jax.physics import video as physics_video
+
+        first = res[physics_protocols.result_key(protocols[0], "success")]
+        pick = cmd.video_index
+        if pick is None:
+            pick = int(idx[np.argmax(first)]) if first.any() else int(idx[0])
+        if not 0 <= pick < n:
+            raise FfcgsError(f"--video-index must be in [0, {n - 1}], got {pick}")
+        scene = physics.scenes(spec, mesh, cmd.physics, protocols[:1])[protocols[0]]
+        batch, _, _ = physics.prepare(scene, mesh, data["wrist_pose"][pick:pick + 1], data["q"][pick:pick + 1],
+                                      cmd.physics)
+        frames = physics_video.record(scene, batch, 0, cmd.physics, protocols[0], cmd.video,
+                                      title=f"{protocols[0]}  grasp {pick}")
+        print(f"wrote {cmd.video} (grasp {pick}, {protocols[0]}, {frames} frames)")
+
+
+def _read_poses(path: str) -> np.ndarray:
+    p = Path(path)
+    if not p.is_file():
+        raise FfcgsError(f"pose file not found: {p}")
+    try:
+        data = np.load(p, allow_pickle=False)
+        if isinstance(data, np.lib.npyio.NpzFile):
+            if "wrist_pose" not in data.files:
+                raise FfcgsError(f"pose file {p} has no 'wrist_pose' array (has {', '.join(data.files)})")
+            data = data["wrist_pose"]
+    except FfcgsError:
+        raise
+    except Exception as e:  # noqa: BLE001 - any parse failure means an unreadable file
+        raise FfcgsError(f"pose file {p} is not a readable .npy/.npz: {type(e).__name__}: {e}") from None
+    from ffcgs_jax.hand.kinematics import check_wrist_poses
+
+    return check_wrist_poses(data, f"wrist poses in {p}").reshape(-1, 4, 4)
+
+
+@dataclasses.dataclass(frozen=True)
+class DatasetInfoCmd:
+    """Print the counts and quality statistics of a dataset file; optionally draw its grasps.
+
+    Attributes:
+        dataset: the .mcap file `ffcgs dataset build` wrote.
+        png: also draw a gallery per object into this directory (<object>.png: its first record's best grasps).
+        objects: the mesh directory the dataset was built from (the file stores SDFs, not meshes); procedural
+            shapes are regenerated without it.
+        per_object: grasps drawn per object.
+        json: also write the statistics to this JSON file.
+    """
+
+    dataset: tyro.conf.Positional[str] = tyro.MISSING
+    png: str | None = None
+    objects: str | None = None
+    per_object: int = 4
+    json: str | None = None
+
+    def check(self) -> None:
+        if not 1 <= self.per_object <= 64:
+            raise FfcgsError(f"--per-object must be in [1, 64], got {self.per_object}")
+
+
+def run_dataset_build(cfg: DatasetConfig) -> None:
+    from ffcgs_jax.dataset import build as dataset_build
+
+    r = dataset_build.build(cfg)
+    done = f"{r['built']} objects built, {r['skipped']} already done, {r['seconds']:.0f} s (timing in {r['timing']})"
+    if r.get("partial"):
+        print(f"wrote {r['out']} with the annotated objects only: {done}; {r['missing']} records missing")
+    elif r["out"] is None:
+        print(f"shard {cfg.shard} finished: {done}; {r['missing']} records of other shards missing, so {cfg.out} "
+              f"is not written yet (rerun without --shard once they are done)")
+    else:
+        print(f"wrote {r['out']}: {done}")
+
+
+def run_dataset_info(cmd: DatasetInfoCmd) -> None:
+    from ffcgs_jax.dataset import stats as dataset_stats
+
+    stats = dataset_stats.stats(cmd.dataset)
+    print(dataset_stats.format_stats(stats))
+    if cmd.json:
+        Path(cmd.json).write_text(json.dumps(stats, indent=1))
+        print(f"wrote {cmd.json}")
+    if cmd.png:
+        written, skipped = dataset_stats.gallery(cmd.dataset, cmd.png, cmd.per_object, cmd.objects)
+        print(f"wrote {len(written)} gallery picture(s) to {cmd.png}")
+        if skipped:
+            print(f"no picture for {len(skipped)} object(s) without grasps or mesh (pass --objects DIR): "
+                  f"{', '.join(skipped[:8])}{' ...' if len(skipped) > 8 else ''}")
+
+
+COMMANDS: dict[str, tuple[type, Callable]] = {
+    "grasp": (GraspCmd, run_grasp),
+    "eval": (EvalCmd, run_eval),
+    "bench": (BenchCmd, run_bench),
+    "objects": (ObjectsCmd, run_objects),
+    "sdf": (SdfCmd, run_sdf),
+    "hand": (HandCmd, run_hand),
+    "dataset build": (DatasetConfig, run_dataset_build),
+    "dataset info": (DatasetInfoCmd, run_dataset_info),
+}

@@ -1,0 +1,68 @@
+"""The `ffcgs` command: one subcommand per job (`cli.commands`), options from frozen config dataclasses.
+
+Every subcommand takes `--config FILE.toml` (sections as in `configs/`) and then command-line overrides
+(`ffcgs sdf mug --res 64`). Bad input ends with one line on stderr and exit status 2, never a traceback.
+"""
+
+import sys
+import warnings
+
+from ffcgs_jax.cli.commands import COMMANDS
+from ffcgs_jax.config import with_overrides
+from ffcgs_jax.errors import FfcgsError
+
+# Composite configs whose nested sections share field names (seed, filters) keep their prefixes on the command
+# line: `ffcgs dataset build --per-object 200 --planner.population 4096 --physics.friction 0.6`.
+_PREFIXED = {"dataset build"}
+
+
+def _usage() -> str:
+    lines = ["usage: ffcgs COMMAND [--config FILE.toml] [options]", "", "commands:"]
+    for name, (cls, _) in COMMANDS.items():
+        lines.append(f"  {name:<14} {(cls.__doc__ or '').strip().splitlines()[0]}")
+    lines += ["", "`ffcgs COMMAND --help` lists a command's options."]
+    return "\n".join(lines)
+
+
+def parse(argv: list[str]):
+    """Parse `ffcgs COMMAND ...` into (run function, command dataclass)."""
+    if not argv or argv[0] in ("-h", "--help"):
+        print(_usage())
+        raise SystemExit(0 if argv else 2)
+    name, argv = argv[0], argv[1:]
+    if name == "dataset":
+        subs = [c.split(" ", 1)[1] for c in COMMANDS if c.startswith("dataset ")]
+        if not argv or argv[0] not in subs:
+            raise FfcgsError(f"ffcgs dataset needs a subcommand: {', '.join(subs)}")
+        name, argv = f"dataset {argv[0]}", argv[1:]
+    if name not in COMMANDS:
+        raise FfcgsError(f"unknown command {name!r}; commands: {', '.join(COMMANDS)}")
+    cls, fn = COMMANDS[name]
+    cmd = with_overrides(cls, argv, f"ffcgs {name}", keep_prefixes=name in _PREFIXED)
+    return fn, cmd
+
+
+def _one_line_warning(message, category, filename, lineno, file=None, line=None):
+    print(f"ffcgs: warning: {message}", file=sys.stderr if file is None else file)
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = sys.argv[1:] if argv is None else argv
+    warnings.showwarning = _one_line_warning  # a user needs the message, not our source line
+    try:
+        fn, cmd = parse(argv)
+        from ffcgs_jax.cli import jax_cache  # imports JAX: not before parsing, so --help stays quick
+
+        jax_cache.enable()  # a second run loads its executables from disk (FFCGS_JAX_CACHE=off: compile every time)
+        fn(cmd)
+    except FfcgsError as e:
+        print(f"ffcgs: error: {e}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("ffcgs: interrupted", file=sys.stderr)
+        return 130
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

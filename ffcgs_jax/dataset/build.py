@@ -1,0 +1,315 @@
+"""`ffcgs dataset build`: annotate objects with the planner and the physics test, write rotated records to MCAP.
+
+Per object (in its own frame, resting on the table as the file has it):
+    1. the Gradient-SDF;
+    2. `planner.plan`: simulated annealing of `planner.population` candidates, the best `planner.refine` refined by
+       the Q-distance optimiser, ranked valid first and then by epsilon;
+    3. the valid ones, near-duplicate wrists dropped (`planner.dedupe`);
+    4. `planner.physics_select`: six-dir then lift-shake, in ranking order, until `per_object` pass both;
+    (the kept grasps and counts are saved to OUT.parts/annotations/<object>.npz, so an interrupted build, or one
+    finished elsewhere from annotations copied in, never annotates an object twice)
+    5. for each of `rotations` random rotations R: the mesh is rotated, its SDF rebuilt (never the voxel grid
+       rotated), the kept wrist poses pre-multiplied by R, a noisy copy drawn, and the record written.
+
+The annotation happens once per object, before the rotations. With the default yaw rotations (about the vertical
+axis through the object's origin) gravity and the table are unchanged relative to object and hand, so the physics
+results hold for every rotated copy exactly; "so3" rotations are a shape-only augmentation.
+
+Determinism: every random draw comes from (seed, object name[, rotation]), so a record does not depend on which
+other objects are built, in what order, or whether the build was interrupted. Parts are bit-identical on one
+machine and JAX backend. A GPU build and a CPU build of the same config differ in the last float bits (and so,
+through the ranking, in which grasps are kept); their parts can still be merged, since each record is complete
+in itself, and `timing.jsonl` in the parts directory says which backend built which object.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import trimesh
+
+from ffcgs_jax.dataset import mcap_io as dataset_io
+from ffcgs_jax.dataset import schema
+from ffcgs_jax.dataset.config import DatasetConfig
+from ffcgs_jax.errors import FfcgsError
+from ffcgs_jax.geometry import mesh_io, procedural
+
+MESH_SUFFIXES = tuple(f".{s}" for s in mesh_io.FORMATS)
+
+
+@dataclass(frozen=True)
+class Source:
+    """One object to annotate: its name, split, category, mesh (loaded lazily from `path` unless given)."""
+
+    name: str
+    split: str
+    category: str
+    sha256: str
+    path: Path | None = None
+    mesh: trimesh.Trimesh | None = None
+
+    def load(self) -> trimesh.Trimesh:
+        return self.mesh if self.mesh is not None else mesh_io.load_mesh(self.path)
+
+
+def file_sha256(path: Path) -> str:
+    return hashlib.sha256(path.read_bytes()).hexdigest()
+
+
+def mesh_sha256(mesh: trimesh.Trimesh) -> str:
+    h = hashlib.sha256(np.ascontiguousarray(mesh.vertices, "<f8").tobytes())
+    h.update(np.ascontiguousarray(mesh.faces, "<i8").tobytes())
+    return h.hexdigest()
+
+
+def _categories(directory: Path) -> dict[str, str]:
+    """file name -> category from an objects.json beside the meshes (the YCB set has one), else empty."""
+    index = directory / "objects.json"
+    if not index.is_file():
+        return {}
+    try:
+        rows = json.loads(index.read_text()).get("objects", [])
+        return {r["file"]: str(r.get("category", "")) for r in rows if isinstance(r, dict) and "file" in r}
+    except (ValueError, AttributeError, TypeError):
+        return {}  # the category is a label for summaries, not worth failing a build over
+
+
+def sources(cfg: DatasetConfig) -> list[Source]:
+    """The objects of cfg.split in cfg.objects (sorted file order; test = index % 5 == 4), plus the procedural
+    shapes (train split)."""
+    if not cfg.objects:
+        raise FfcgsError("--objects is required: a directory of meshes (e.g. shared/objects/ycb)")
+    directory = Path(cfg.objects)
+    if not directory.is_dir():
+        raise FfcgsError(f"objects directory not found: {directory}")
+    files = sorted(p for p in directory.iterdir() if p.is_file() and p.suffix.lower() in MESH_SUFFIXES)
+    if not files:
+        raise FfcgsError(f"no mesh files ({', '.join(mesh_io.FORMATS)}) in {directory}")
+    stems = [p.stem for p in files]
+    dup = sorted({s for s in stems if stems.count(s) > 1})
+    if dup:
+        raise FfcgsError(f"{directory}: several files share the name(s) {dup}; object names must be unique")
+    cats = _categories(directory)
+    out = []
+    for i, p in enumerate(files):
+        split = "test" if i % 5 == 4 else "train"
+        if cfg.split in ("all", split):
+            out.append(Source(p.stem, split, cats.get(p.name, ""), file_sha256(p), path=p))
+    if cfg.split in ("train", "all"):
+        for i in range(cfg.procedural):
+            name, mesh = procedural.shape(cfg.seed, i)
+            if name in stems:
+                raise FfcgsError(f"{directory} has a file named like procedural shape {name!r}; rename it or "
+                                 f"build without --procedural")
+            out.append(Source(name, "train", "procedural", mesh_sha256(mesh), mesh=mesh))
+    return out
+
+
+def object_seed(seed: int, name: str, *extra: int) -> int:
+    """A 63-bit seed from the build seed, the object name and optional integers (rotation index, stream)."""
+    text = ":".join(["ffcgs-dataset", str(seed), name, *map(str, extra)])
+    return int.from_bytes(hashlib.sha256(text.encode()).digest()[:8], "little") >> 1
+
+
+def rotation(cfg: DatasetConfig, name: str, index: int) -> np.ndarray:
+    """The 3x3 rotation of record `index` of object `name`: a uniform yaw, or uniform over SO(3)."""
+    from scipy.spatial.transform import Rotation
+
+    rng = np.random.default_rng(object_seed(cfg.seed, name, index, 0))
+    if cfg.rotation_mode == "yaw":
+        return Rotation.from_rotvec([0.0, 0.0, rng.uniform(-np.pi, np.pi)]).as_matrix()
+    return Rotation.random(random_state=rng).as_matrix()
+
+
+def noisy(poses: np.ndarray, sigma_t: float, sigma_r: float, rng: np.random.Generator) -> np.ndarray:
+    """Wrist poses (G, 4, 4) with Gaussian noise: translation N(0, sigma_t^2 I) in the object frame, rotation
+    exp(N(0, sigma_r^2 I)) applied in the wrist frame."""
+    from scipy.spatial.transform import Rotation
+
+    out = np.array(poses, np.float64, copy=True)
+    g = len(out)
+    if g == 0:
+        return out
+    dt = rng.normal(0.0, sigma_t, (g, 3))
+    dr = Rotation.from_rotvec(rng.normal(0.0, sigma_r, (g, 3))).as_matrix()
+    out[:, :3, :3] = out[:, :3, :3] @ dr
+    out[:, :3, 3] += dt
+    return out
+
+
+def _homogeneous(R: np.ndarray) -> np.ndarray:
+    T = np.eye(4)
+    T[:3, :3] = R
+    return T
+
+
+def rotate_mesh(mesh: trimesh.Trimesh, R: np.ndarray) -> trimesh.Trimesh:
+    return mesh.copy().apply_transform(_homogeneous(R))
+
+
+def record_config(cfg: DatasetConfig) -> dict:
+    """The config stored in the dataset and checked on resume: everything but where the files are."""
+    d = dataclasses.asdict(cfg)
+    for k in ("objects", "out", "shard", "annotate"):
+        d.pop(k)
+    d["physics"].pop("workers")
+    d["grasp"].pop("devices")  # where it runs, not what it computes
+    for k in ("cvae_oversample", "weights"):  # the planner samples geometric poses: cvae settings do not matter
+        d["grasp"]["sampling"].pop(k)
+    for k in ("lp_solver", "lp_pivots"):  # like the backend: the LP paths agree to their tolerance
+        d["grasp"]["energy"].pop(k)
+    return d
+
+
+@dataclass
+class Annotation:
+    """The kept grasps of one object in its own frame, and what it took to find them."""
+
+    grasps: dict[str, np.ndarray]
+    counts: dict[str, int]
+    seconds: dict[str, float]
+
+    def save(self, path: Path) -> None:
+        """Atomically, as an npz (no pickle): the grasp arrays and the counts as JSON. Seconds are not saved: the
+        file must not depend on how fast the machine was."""
+        arrays = dict(self.grasps) | {"counts_json": np.array(json.dumps(self.counts, sort_keys=True))}
+        dataset_io.atomic_write(path, lambda f: np.savez(f, **arrays))
+
+    @classmethod
+    def load(cls, path: Path) -> Annotation:
+        try:
+            with np.load(path, allow_pickle=False) as z:
+                grasps = {k: z[k] for k in z.files if k != "counts_json"}
+                counts = json.loads(str(z["counts_json"]))
+        except Exception as e:  # noqa: BLE001 - any unreadable cache file names itself
+            raise FfcgsError(f"annotation file {path} is unreadable ({type(e).__name__}: {e}); delete it to "
+                             f"annotate that object again") from None
+        return cls(grasps, counts, {})
+
+
+def annotation_path(parts_dir: Path, name: str) -> Path:
+    return parts_dir / "annotations" / (schema.record_id(name, 0).rsplit(".", 1)[0] + ".npz")
+
+
+def annotate(hand, spec, mesh: trimesh.Trimesh, cfg: DatasetConfig, name: str, grid=None,
+             progress=None) -> Annotation:
+    """Plan, dedupe, physics-select (module docstring, steps 1-4)."""
+    import jax
+
+    from ffcgs_jax.dataset import planner
+    from ffcgs_jax.geometry import sdf as sdf_mod
+
+    t0 = time.perf_counter()
+    if grid is None:
+        grid = sdf_mod.build_sdf(mesh, cfg.grasp.sdf)
+    key = jax.random.PRNGKey(object_seed(cfg.seed, name, 0, 1))
+    gs = planner.plan(hand, mesh, cfg.planner, cfg.grasp, name, grid=grid, key=key)
+    t1 = time.perf_counter()
+    valid = np.flatnonzero(gs["valid"])  # ranked: valid first, by epsilon
+    cand = gs.select(valid[planner.dedupe(gs["wrist_pose"][valid], cfg.dedupe_trans, cfg.dedupe_rot)])
+    counts = {"annealed": cfg.planner.population, "refined": len(gs["valid"]), "valid": len(valid),
+              "valid_epsilon_pos": int((gs["epsilon"][valid] > 0).sum()), "distinct": len(cand["valid"])}
+    if cfg.physics_test == "both":
+        keep, phys = planner.physics_select(cand, spec, mesh, cfg.per_object, cfg.physics, cfg.physics_chunk,
+                                            progress)
+        counts |= {"tested_six_dir": int(phys["tested_six_dir"].sum()),
+                   "passed_six_dir": int(phys["six_dir_success"].sum()),
+                   "tested_lift_shake": int(phys["tested_lift_shake"].sum()),
+                   "passed_both": int((phys["six_dir_success"] & phys["lift_shake_success"]).sum())}
+    else:
+        keep, phys = np.arange(min(cfg.per_object, len(cand["valid"]))), None
+    t2 = time.perf_counter()
+    kept = cand.select(keep)
+    grasps = {k: np.asarray(kept[k]) for k in ("wrist_pose", "q", "epsilon", "E", "E_g", "E_c")}
+    if phys is not None:
+        grasps |= {k: phys[k][keep] for k in ("lift_shake_success", "six_dir_success")}
+    counts["kept"] = len(keep)
+    return Annotation(grasps, counts, {"plan": t1 - t0, "physics": t2 - t1})
+
+
+def records(source: Source, mesh: trimesh.Trimesh, ann: Annotation, cfg: DatasetConfig, todo: set[int]):
+    """The rotated records (step 5) of the rotation indices in `todo`."""
+    from ffcgs_jax.geometry import sdf as sdf_mod
+
+    for r in sorted(todo):
+        R = rotation(cfg, source.name, r)
+        grid = sdf_mod.build_sdf(rotate_mesh(mesh, R), cfg.grasp.sdf)
+        poses = _homogeneous(R)[None] @ ann.grasps["wrist_pose"]
+        rng = np.random.default_rng(object_seed(cfg.seed, source.name, r, 2))
+        yield schema.Record.create(
+            object_name=source.name, mesh_sha256=source.sha256, rotation_index=r, rotation=R, split=source.split,
+            category=source.category, info=ann.counts, sdf=grid,
+            **(ann.grasps | {"wrist_pose": poses}),
+            wrist_pose_noisy=noisy(poses, cfg.noise_trans, cfg.noise_rot, rng))
+
+
+def build(cfg: DatasetConfig, show_progress: bool = True) -> dict:
+    """Run (or resume) the build; returns {"out", "built", "skipped", "seconds", "timing", "missing"}: "out" is None
+    when this shard finished but other shards' records are still missing (then "missing" counts them)."""
+    import jax
+    from tqdm.auto import tqdm
+
+    from ffcgs_jax.hand import kinematics as K
+    from ffcgs_jax.hand import spec as hand_spec
+
+    cfg.check()
+    srcs = sources(cfg)
+    hand, spec = K.load_hand(cfg.hand), hand_spec.load_spec(cfg.hand)
+    extra = {"objects": [{"name": s.name, "split": s.split, "category": s.category, "mesh_sha256": s.sha256}
+                         for s in srcs],
+             "x64": bool(jax.config.jax_enable_x64)}
+    writer = dataset_io.DatasetWriter(cfg.out, record_config(cfg), extra)
+    expected = [schema.record_id(s.name, r) for s in srcs for r in range(cfg.rotations)]
+    timing_log = writer.parts_dir / "timing.jsonl"
+    t_start = time.perf_counter()
+    built = skipped = 0
+    k, n = cfg.shard_of()
+    bar = tqdm(srcs[k::n], desc="objects", unit="obj", disable=not show_progress, dynamic_ncols=True)
+    for src in bar:
+        todo = {r for r in range(cfg.rotations) if schema.record_id(src.name, r) not in writer.done}
+        if not todo:
+            skipped += 1
+            continue
+        bar.set_postfix_str(src.name)
+        t0 = time.perf_counter()
+        mesh = src.load()
+
+        def tick(tested, kept, _name=src.name):
+            bar.set_postfix_str(f"{_name}: +{tested} tested, {kept}/{cfg.per_object} kept")
+
+        cached = annotation_path(writer.parts_dir, src.name)
+        if cached.is_file():  # annotated before (this run was interrupted, or another machine did it)
+            ann = Annotation.load(cached)
+        elif not cfg.annotate:
+            continue
+        else:
+            ann = annotate(hand, spec, mesh, cfg, src.name, progress=tick)
+            cached.parent.mkdir(exist_ok=True)
+            ann.save(cached)
+        t1 = time.perf_counter()
+        for rec in records(src, mesh, ann, cfg, todo):
+            writer.add(rec)
+        built += 1
+        row = {"object": src.name, "backend": jax.default_backend(), "cached": not ann.seconds, **ann.counts, **{f"{k}_s": round(v, 3) for k, v in ann.seconds.items()},
+               "rotations_s": round(time.perf_counter() - t1, 3), "total_s": round(time.perf_counter() - t0, 3)}
+        with open(timing_log, "a") as f:
+            f.write(json.dumps(row) + "\n")
+        if show_progress:
+            tqdm.write(f"{src.name}: kept {ann.counts['kept']} of {ann.counts['valid']} valid "
+                       f"({ann.counts.get('tested_six_dir', 0)} physics-tested) in {row['total_s']:.0f} s")
+    bar.close()
+    missing = len(set(expected) - set(dataset_io.done_records(writer.parts_dir)))
+    if not missing:
+        writer.finish(expected)
+    elif not cfg.annotate and cfg.shard_of() == (0, 1):
+        writer.finish()  # a partial dataset, asked for: what is annotated so far
+        return {"out": cfg.out, "built": built, "skipped": skipped, "missing": missing, "partial": True,
+                "seconds": time.perf_counter() - t_start, "timing": str(timing_log)}
+    return {"out": None if missing else cfg.out, "built": built, "skipped": skipped, "missing": missing,
+            "seconds": time.perf_counter() - t_start, "timing": str(timing_log)}

@@ -1,0 +1,148 @@
+"""`ffcgs dataset build`'s settings: the annotation planner's and the build's."""
+
+import dataclasses
+
+from ffcgs_jax.config import check_integer, is_finite
+from ffcgs_jax.errors import FfcgsError
+from ffcgs_jax.physics.config import PhysicsConfig
+from ffcgs_jax.synthesis.config import GraspConfig
+
+
+@dataclasses.dataclass(frozen=True)
+class PlannerConfig:
+    """The annotation planner's simulated annealing (frozen: a static jit argument). Start poses come from the
+    geometric sampler and the palm-up bound from the filters of the `GraspConfig` the planner is given.
+
+    Attributes:
+        population: candidates annealed as one batch.
+        steps: Metropolis steps per candidate.
+        t0, t_end: temperature at the first and the last step (geometric cooling in between), in units of the
+            cheap energy: 0.05 accepts a 1 cm RMS fingertip regression (a_c 5) about a third of the time at first.
+        step_shift, step_rot, step_q: standard deviation of the proposal's wrist translation (m, hand frame), wrist
+            rotation (rad) and channels (rad) at t0. They shrink with sqrt(T / t0), so late steps fine-tune
+            instead of jumping out of the basin they cooled into.
+        a_c, a_q, a_pen: weights of E_c, E_q and the whole-hand penetration penalty, as in `EnergyConfig`.
+        a_fc: weight of the force-closure proxy |sum of inward unit contact normals| / C (0 when opposed).
+        a_up: weight of how far the palm normal's z exceeds filters.palm_up_max (that filter would drop it later).
+        refine: how many of the lowest-energy annealed candidates go on to the Q-distance optimiser.
+    """
+
+    population: int = 2048
+    steps: int = 100
+    t0: float = 0.05
+    t_end: float = 1e-3
+    step_shift: float = 0.01
+    step_rot: float = 0.1
+    step_q: float = 0.2
+    a_c: float = 5.0
+    a_q: float = 0.5
+    a_pen: float = 1e4
+    a_fc: float = 0.1
+    a_up: float = 1.0
+    refine: int = 512
+
+    def check(self) -> None:
+        for name in ("population", "steps", "refine"):
+            check_integer(f"planner.{name}", getattr(self, name), 1, 1_000_000)
+        if self.refine > self.population:
+            raise FfcgsError(f"planner.refine ({self.refine}) must not exceed planner.population ({self.population})")
+        for name in ("t0", "t_end", "step_shift", "step_rot", "step_q", "a_c", "a_q", "a_pen", "a_fc", "a_up"):
+            v = getattr(self, name)
+            if not (is_finite(v) and (v > 0 if name in ("t0", "t_end") else v >= 0)):
+                raise FfcgsError(f"planner.{name} must be a finite number "
+                                 f"{'> 0' if name in ('t0', 't_end') else '>= 0'}, got {v!r}")
+        if self.t_end > self.t0:
+            raise FfcgsError(f"planner.t_end ({self.t_end}) must not exceed planner.t0 ({self.t0}): it cools")
+
+
+SPLITS = ("train", "test", "all")
+
+
+ROTATION_MODES = ("yaw", "so3")
+
+
+@dataclasses.dataclass(frozen=True)
+class DatasetConfig:
+    """`ffcgs dataset build`: annotate every object of a split with the planner and the physics test, then write
+    each object under several random rotations (recomputed SDF, grasps rotated with it) to one MCAP file.
+
+    Attributes:
+        objects: directory of meshes (stl, obj, ply, off, glb; metres, z up). Files are taken in sorted order; the
+            test split is the files at positions where index % 5 == 4, the rest is train.
+        out: the dataset file (.mcap). Finished records and per-object annotations are kept in OUT.parts/ (also
+            after the merge; delete it yourself), so a rerun of the same command continues an interrupted build.
+        split: "train", "test" or "all" of `objects`.
+        per_object: grasps kept per object (the best by epsilon among those that pass the physics test).
+        rotations: random rotations per object; every rotation is its own record with all the object's grasps.
+        rotation_mode: "yaw" (about the vertical axis: the object still rests on the table the same way, so the
+            physics results stay true) or "so3" (uniform over all rotations, as a pure shape augmentation).
+        seed: seeds everything (per object through its name, so adding objects does not change the others).
+        procedural: also annotate this many generated shapes (boxes, cylinders, ellipsoids, capsules, train
+            split; named proc_NNN_kind).
+        noise_trans, noise_rot: standard deviation (m, rad) of the Gaussian noise on the wrist pose stored as
+            `wrist_pose_noisy` per record: translation in the object frame, rotation as a rotation vector applied
+            in the wrist frame. The clean pose is kept beside it.
+        dedupe_trans, dedupe_rot: a candidate whose wrist is within both this distance (m) and this angle (rad)
+            of a better-ranked one is dropped before the physics test (near-duplicates add nothing).
+        physics_chunk: candidates sent to the physics test at a time, in ranking order, until per_object pass.
+        physics_test: "both" (six-dir, then lift-shake on the survivors; both must pass) or "none" (rank by
+            epsilon only; for quick tests).
+        hand: built-in hand name or hand-spec TOML.
+        shard: "K/N" builds only objects K, K+N, K+2N, ... (0-based, in build order) so N processes or machines
+            can share one parts directory; the last to finish merges (or rerun without --shard to merge). Not part
+            of the dataset's config, nor is physics.workers: neither changes a record.
+        annotate: False writes records only for objects already annotated (in OUT.parts/annotations, e.g. copied
+            from the machines that annotated them) and merges them into a partial OUT, saying how many records
+            are missing; the default annotates everything first.
+        planner, grasp, physics: the planner, the refinement (the grasp pipeline on given poses) and the test.
+    """
+
+    objects: str = ""
+    out: str = "dataset.mcap"
+    split: str = "train"
+    per_object: int = 200
+    rotations: int = 5
+    rotation_mode: str = "yaw"
+    seed: int = 0
+    procedural: int = 0
+    noise_trans: float = 0.005
+    noise_rot: float = 0.05
+    dedupe_trans: float = 0.005
+    dedupe_rot: float = 0.1
+    physics_chunk: int = 128
+    physics_test: str = "both"
+    hand: str = "svh"
+    shard: str = "0/1"
+    annotate: bool = True
+    planner: PlannerConfig = PlannerConfig()
+    # The planner draws its own geometric start poses; "geometric" here keeps the stored build config (and so
+    # resuming a build) independent of the synthesis default, which is the cvae trained on this very data.
+    grasp: GraspConfig = GraspConfig(sampler="geometric")
+    physics: PhysicsConfig = PhysicsConfig()
+
+    def shard_of(self) -> tuple[int, int]:
+        try:
+            k, n = (int(x) for x in self.shard.split("/"))
+        except ValueError:
+            k, n = -1, 0
+        if not 0 <= k < n:
+            raise FfcgsError(f"--shard must be K/N with 0 <= K < N, got {self.shard!r}")
+        return k, n
+
+    def check(self) -> None:
+        if self.split not in SPLITS:
+            raise FfcgsError(f"unknown split {self.split!r}; splits: {', '.join(SPLITS)}")
+        if self.rotation_mode not in ROTATION_MODES:
+            raise FfcgsError(f"unknown rotation_mode {self.rotation_mode!r}; modes: {', '.join(ROTATION_MODES)}")
+        if self.physics_test not in ("both", "none"):
+            raise FfcgsError(f"physics_test must be 'both' or 'none', got {self.physics_test!r}")
+        for name, lo, hi in (("per_object", 1, 1_000_000), ("rotations", 1, 1000), ("procedural", 0, 100_000),
+                             ("physics_chunk", 1, 1_000_000), ("seed", 0, 2**63 - 1)):
+            check_integer(name.replace("_", "-"), getattr(self, name), lo, hi)
+        for name in ("noise_trans", "noise_rot", "dedupe_trans", "dedupe_rot"):
+            v = getattr(self, name)
+            if not (is_finite(v) and 0 <= v <= 10):
+                raise FfcgsError(f"{name.replace('_', '-')} must be a number in [0, 10], got {v!r}")
+        if not self.out.endswith(".mcap"):
+            raise FfcgsError(f"--out must name an .mcap file, got {self.out!r}")
+        self.shard_of()

@@ -1,0 +1,306 @@
+"""The training-data format: what one record holds, the MCAP topics and schemas, and the array encoding.
+
+The files themselves (writing parts, merging, reading back) are `mcap_io`'s; this module only defines and
+(de)serialises a record.
+
+Records
+    A build is a sequence of *object records* (`Record`): one object mesh under one rotation. Each carries the
+    metadata object name, SHA-256 of the source mesh, rotation index, the 3x3 rotation matrix applied to the mesh,
+    split name ("train", "val", ...); the SDF (grid (R, R, R, 4) float32, origin (3,), voxel_size, table_z, in the
+    rotated object's frame, see `geometry.sdf.GradientSDF`); and the kept grasps: wrist_pose (G, 4, 4) in the
+    object frame, q (G, 9) joint channels, per-grasp epsilon, E, E_g, E_c (G,) and optionally the physics results
+    lift_shake_success, six_dir_success (G,) bool. G = 0 is allowed.
+
+    Record id: `record_id(object_name, rotation_index)` = "<name>.r<rotation_index:04d>", where <name> is the object
+    name if it only uses [A-Za-z0-9_-], else the name with other characters replaced by "_" plus "-" and the first 8
+    hex digits of the name's SHA-256 (so distinct names never collide). Ids are deterministic, unique per
+    (object, rotation), usable as file names, and their string order is the record order of the merged file.
+
+MCAP topics (schema encoding "jsonschema"; the schemas are `SCHEMAS` below):
+    /config   one message, message encoding "json": {"version": package version, "config": the build config dict,
+              "extra": anything else passed to `mcap_io.init_parts`}. log_time 0.
+    /sdf      one message per record, message encoding "ffcgs.arrays.v1" (below): meta + arrays grid <f4 (R,R,R,4),
+              origin <f8 (3,), voxel_size <f8 (), table_z <f8 ().
+    /grasps   one message per record, same encoding: meta + arrays wrist_pose <f8 (G,4,4), q <f8 (G,9),
+              epsilon, E, E_g, E_c <f8 (G,), and if present lift_shake_success, six_dir_success |b1 (G,).
+    Record i (0-based, in record-id order) has its /sdf then its /grasps message, both with log_time = publish_time =
+    sequence = i. The header "meta" of both messages is {"record_id", "object_name", "mesh_sha256",
+    "rotation_index", "rotation" (3x3 nested list), "split"}.
+
+Message encoding "ffcgs.arrays.v1" (dependency-free, readable with any language):
+    bytes [0, 8)      magic b"FFCGSAR1"
+    bytes [8, 12)     n = header length, uint32 little-endian
+    bytes [12, 12+n)  header, UTF-8 JSON: {"meta": {...}, "arrays": {name: {"dtype": numpy dtype string e.g. "<f4",
+                      "shape": [...], "offset": byte offset into the data section}}}; the JSON schema of this
+                      header is the channel's schema
+    zero padding to the next multiple of 8, then the data section: each array's raw C-order little-endian bytes at
+    its offset (offsets are multiples of 8). No compression inside the message; the MCAP chunks are zstd-compressed.
+    Encoding is deterministic (sorted JSON keys, fixed array order), so the same record gives the same bytes.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+import re
+import struct
+
+import numpy as np
+
+from ffcgs_jax.errors import FfcgsError
+
+ENCODING = "ffcgs.arrays.v1"
+
+MAGIC = b"FFCGSAR1"
+
+_META_SCHEMA = {
+    "type": "object",
+    "properties": {"record_id": {"type": "string"}, "object_name": {"type": "string"},
+                   "mesh_sha256": {"type": "string", "pattern": "^[0-9a-f]{64}$"},
+                   "rotation_index": {"type": "integer", "minimum": 0},
+                   "rotation": {"type": "array", "items": {"type": "array", "items": {"type": "number"}}},
+                   "split": {"type": "string"}, "category": {"type": "string"}, "info": {"type": "object"}},
+    "required": ["record_id", "object_name", "mesh_sha256", "rotation_index", "rotation", "split"],
+}
+
+_ARRAY_SCHEMA = {"type": "object",
+                 "properties": {"dtype": {"type": "string"}, "shape": {"type": "array", "items": {"type": "integer"}},
+                                "offset": {"type": "integer"}},
+                 "required": ["dtype", "shape", "offset"]}
+
+
+def _arrays_schema(title: str, required: list[str], optional: list[str]) -> dict:
+    return {"title": title, "type": "object",
+            "description": f"Header of a message in encoding {ENCODING} (see ffcgs_jax/dataset/schema.py): magic "
+                           "FFCGSAR1, uint32 LE header length, this JSON header, zero padding to 8 bytes, then the "
+                           "raw little-endian C-order arrays at the given offsets of the data section.",
+            "properties": {"meta": _META_SCHEMA,
+                           "arrays": {"type": "object",
+                                      "properties": {k: _ARRAY_SCHEMA for k in required + optional},
+                                      "required": required, "additionalProperties": False}},
+            "required": ["meta", "arrays"]}
+
+
+SDF_ARRAYS = {"grid": "<f4", "origin": "<f8", "voxel_size": "<f8", "table_z": "<f8"}
+
+GRASP_ARRAYS = {"wrist_pose": "<f8", "q": "<f8", "epsilon": "<f8", "E": "<f8", "E_g": "<f8", "E_c": "<f8"}
+
+PHYSICS_ARRAYS = {"lift_shake_success": "|b1", "six_dir_success": "|b1"}
+
+OPTIONAL_GRASP_ARRAYS = {"wrist_pose_noisy": "<f8", **PHYSICS_ARRAYS}
+
+SCHEMAS = {
+    "/config": {"title": "ffcgs.DatasetConfig", "type": "object",
+                "properties": {"version": {"type": "string"}, "config": {"type": "object"},
+                               "extra": {"type": "object"}},
+                "required": ["version", "config", "extra"]},
+    "/sdf": _arrays_schema("ffcgs.DatasetSdf", list(SDF_ARRAYS), []),
+    "/grasps": _arrays_schema("ffcgs.DatasetGrasps", list(GRASP_ARRAYS), list(OPTIONAL_GRASP_ARRAYS)),
+}
+
+MESSAGE_ENCODINGS = {"/config": "json", "/sdf": ENCODING, "/grasps": ENCODING}
+
+
+def canonical_json(obj, what: str) -> str:
+    try:
+        return json.dumps(obj, sort_keys=True, separators=(",", ":"), allow_nan=False)
+    except (TypeError, ValueError) as e:
+        raise FfcgsError(f"{what} must be JSON-serialisable (finite numbers, str keys): {e}") from None
+
+
+def record_id(object_name: str, rotation_index: int) -> str:
+    """The deterministic, file-name-safe id of (object, rotation); see the module docstring."""
+    if not isinstance(object_name, str) or not object_name:
+        raise FfcgsError(f"object name must be a non-empty string, got {object_name!r}")
+    if isinstance(rotation_index, bool) or not isinstance(rotation_index, (int, np.integer)) or rotation_index < 0:
+        raise FfcgsError(f"rotation index must be an integer >= 0, got {rotation_index!r}")
+    safe = re.sub(r"[^A-Za-z0-9_-]", "_", object_name)
+    if safe != object_name:
+        safe += "-" + hashlib.sha256(object_name.encode()).hexdigest()[:8]
+    return f"{safe}.r{int(rotation_index):04d}"
+
+
+@dataclasses.dataclass(eq=False)
+class Record:
+    """One object under one rotation: metadata, SDF and kept grasps (numpy arrays; see the module docstring).
+
+    `index` is the record's position in a merged file (set by `mcap_io.iter_records`; -1 for a record not read from
+    one). `Record.create` checks and converts everything; the reader builds records through it too.
+    """
+
+    object_name: str
+    mesh_sha256: str
+    rotation_index: int
+    rotation: np.ndarray
+    split: str
+    grid: np.ndarray
+    origin: np.ndarray
+    voxel_size: np.ndarray
+    table_z: np.ndarray
+    wrist_pose: np.ndarray
+    q: np.ndarray
+    epsilon: np.ndarray
+    E: np.ndarray
+    E_g: np.ndarray
+    E_c: np.ndarray
+    lift_shake_success: np.ndarray | None = None
+    six_dir_success: np.ndarray | None = None
+    wrist_pose_noisy: np.ndarray | None = None
+    category: str = ""
+    info: dict = dataclasses.field(default_factory=dict)
+    index: int = -1
+
+    @property
+    def record_id(self) -> str:
+        return record_id(self.object_name, self.rotation_index)
+
+    @property
+    def num_grasps(self) -> int:
+        return int(self.wrist_pose.shape[0])
+
+    @classmethod
+    def create(cls, *, object_name: str, mesh_sha256: str, rotation_index: int, rotation, split: str, sdf=None,
+               grid=None, origin=None, voxel_size=None, table_z=None, wrist_pose, q, epsilon, E, E_g, E_c,
+               lift_shake_success=None, six_dir_success=None, wrist_pose_noisy=None, category: str = "",
+               info: dict | None = None, index: int = -1) -> Record:
+        """Check and convert. The SDF is either `sdf` (a `GradientSDF` or anything with .grid, .origin,
+        .voxel_size, .table_z) or the four arrays; float arrays become float32 (grid) / float64 (the rest)."""
+        if sdf is not None:
+            grid, origin, voxel_size, table_z = (np.asarray(getattr(sdf, k))
+                                                 for k in ("grid", "origin", "voxel_size", "table_z"))
+        rid = record_id(object_name, rotation_index)  # checks name and index
+        where = f"record {rid}"
+        if not isinstance(mesh_sha256, str) or not re.fullmatch(r"[0-9a-f]{64}", mesh_sha256):
+            raise FfcgsError(f"{where}: mesh_sha256 must be 64 lowercase hex digits, got {mesh_sha256!r}")
+        if not isinstance(split, str) or not split:
+            raise FfcgsError(f"{where}: split must be a non-empty string, got {split!r}")
+
+        def arr(name, value, dtype, shape_ok, shape_text):
+            if value is None:
+                raise FfcgsError(f"{where}: {name} is missing")
+            a = np.asarray(value)
+            if dtype == "|b1":
+                if a.dtype.kind not in "biu" or (a.dtype.kind != "b" and not np.isin(a, (0, 1)).all()):
+                    raise FfcgsError(f"{where}: {name} must be booleans, got dtype {a.dtype}")
+            elif a.dtype.kind not in "fiu" or not np.isfinite(a).all():
+                raise FfcgsError(f"{where}: {name} must be finite numbers (dtype {a.dtype})")
+            if not shape_ok(a.shape):
+                raise FfcgsError(f"{where}: {name} must have shape {shape_text}, got {a.shape}")
+            return np.array(a, dtype=np.dtype(dtype), order="C")  # copy; keeps 0-d shapes
+
+        grid = arr("grid", grid, "<f4", lambda s: len(s) == 4 and s[3] == 4 and s[0] == s[1] == s[2] >= 2,
+                   "(R, R, R, 4) with R >= 2")
+        origin = arr("origin", origin, "<f8", lambda s: s == (3,), "(3,)")
+        voxel_size = arr("voxel_size", voxel_size, "<f8", lambda s: s == (), "()")
+        if not voxel_size > 0:
+            raise FfcgsError(f"{where}: voxel_size must be > 0, got {voxel_size}")
+        table_z = arr("table_z", table_z, "<f8", lambda s: s == (), "()")
+        rotation = arr("rotation", rotation, "<f8", lambda s: s == (3, 3), "(3, 3)")
+        if not np.allclose(rotation @ rotation.T, np.eye(3), atol=1e-5) or np.linalg.det(rotation) <= 0:
+            raise FfcgsError(f"{where}: rotation must be a proper rotation matrix (orthonormal, det +1)")
+        wrist_pose = arr("wrist_pose", wrist_pose, "<f8", lambda s: len(s) == 3 and s[1:] == (4, 4), "(G, 4, 4)")
+        g = wrist_pose.shape[0]
+        q = arr("q", q, "<f8", lambda s: s == (g, 9), f"(G, 9) = ({g}, 9)")
+        scalars = {k: arr(k, v, "<f8", lambda s: s == (g,), f"(G,) = ({g},)")
+                   for k, v in (("epsilon", epsilon), ("E", E), ("E_g", E_g), ("E_c", E_c))}
+        physics = {k: None if v is None else arr(k, v, "|b1", lambda s: s == (g,), f"(G,) = ({g},)")
+                   for k, v in (("lift_shake_success", lift_shake_success), ("six_dir_success", six_dir_success))}
+        if wrist_pose_noisy is not None:
+            wrist_pose_noisy = arr("wrist_pose_noisy", wrist_pose_noisy, "<f8", lambda s: s == (g, 4, 4),
+                                   f"(G, 4, 4) = ({g}, 4, 4)")
+        if not isinstance(category, str):
+            raise FfcgsError(f"{where}: category must be a string, got {category!r}")
+        info = {} if info is None else info
+        if not isinstance(info, dict):
+            raise FfcgsError(f"{where}: info must be a dict, got {type(info).__name__}")
+        canonical_json(info, f"{where}: info")  # JSON-serialisable, or a clear error now rather than at write time
+        return cls(object_name=object_name, mesh_sha256=mesh_sha256, rotation_index=int(rotation_index),
+                   rotation=rotation, split=split, grid=grid, origin=origin, voxel_size=voxel_size, table_z=table_z,
+                   wrist_pose=wrist_pose, q=q, **scalars, **physics, wrist_pose_noisy=wrist_pose_noisy,
+                   category=category, info=info, index=int(index))
+
+    def meta(self) -> dict:
+        meta = {"record_id": self.record_id, "object_name": self.object_name, "mesh_sha256": self.mesh_sha256,
+                "rotation_index": self.rotation_index, "rotation": self.rotation.tolist(), "split": self.split}
+        if self.category:
+            meta["category"] = self.category
+        if self.info:
+            meta["info"] = self.info
+        return meta
+
+    def sdf_arrays(self) -> dict[str, np.ndarray]:
+        return {k: getattr(self, k) for k in SDF_ARRAYS}
+
+    def grasp_arrays(self) -> dict[str, np.ndarray]:
+        out = {k: getattr(self, k) for k in GRASP_ARRAYS}
+        out.update({k: getattr(self, k) for k in OPTIONAL_GRASP_ARRAYS if getattr(self, k) is not None})
+        return out
+
+
+def encode_arrays(meta: dict, arrays: dict[str, np.ndarray]) -> bytes:
+    """Encode a message in "ffcgs.arrays.v1" (module docstring); arrays must already have little-endian dtypes."""
+    descr, blobs, offset = {}, [], 0
+    for name, a in arrays.items():
+        a = np.asarray(a, order="C")
+        if a.dtype.byteorder == ">":
+            raise FfcgsError(f"array {name} is big-endian; convert to little-endian first")
+        descr[name] = {"dtype": a.dtype.str, "shape": list(a.shape), "offset": offset}
+        raw = a.tobytes()
+        pad = -len(raw) % 8
+        blobs.append(raw + b"\0" * pad)
+        offset += len(raw) + pad
+    header = json.dumps({"meta": meta, "arrays": descr}, sort_keys=True, separators=(",", ":")).encode()
+    head = MAGIC + struct.pack("<I", len(header)) + header
+    return head + b"\0" * (-len(head) % 8) + b"".join(blobs)
+
+
+def decode_arrays(data: bytes, what: str = "message") -> tuple[dict, dict[str, np.ndarray]]:
+    """Decode "ffcgs.arrays.v1": (meta, {name: array}) with arrays copied out of `data`."""
+    if len(data) < 12 or data[:8] != MAGIC:
+        raise FfcgsError(f"{what}: not an {ENCODING} payload (bad magic)")
+    (n,) = struct.unpack("<I", data[8:12])
+    try:
+        header = json.loads(data[12:12 + n].decode())
+        meta, descr = header["meta"], header["arrays"]
+    except (UnicodeDecodeError, ValueError, KeyError, TypeError) as e:
+        raise FfcgsError(f"{what}: unreadable {ENCODING} header: {type(e).__name__}: {e}") from None
+    start = 12 + n + (-(12 + n) % 8)
+    arrays = {}
+    for name, d in descr.items():
+        try:
+            dtype = np.dtype(d["dtype"])
+            shape = tuple(int(s) for s in d["shape"])
+            count = int(np.prod(shape, dtype=np.int64))
+            lo = start + int(d["offset"])
+            if dtype.kind not in "biuf" or lo < start or lo + count * dtype.itemsize > len(data):
+                raise ValueError(f"dtype {dtype} / extent out of range")
+            arrays[name] = np.frombuffer(data, dtype=dtype, count=count, offset=lo).reshape(shape).copy()
+        except (KeyError, TypeError, ValueError) as e:
+            raise FfcgsError(f"{what}: bad array {name!r} in {ENCODING} payload: {e}") from None
+    return meta, arrays
+
+
+def record_from(sdf_meta: dict, sdf_arrays: dict, grasp_meta: dict, grasp_arrays: dict, index: int,
+                 what: str) -> Record:
+    if sdf_meta != grasp_meta:
+        raise FfcgsError(f"{what}: /sdf and /grasps messages disagree on the record metadata "
+                         f"({sdf_meta.get('record_id')!r} vs {grasp_meta.get('record_id')!r})")
+    missing = [k for k in _META_SCHEMA["required"] if k not in sdf_meta]
+    missing += [k for k in (*SDF_ARRAYS,) if k not in sdf_arrays]
+    missing += [k for k in (*GRASP_ARRAYS,) if k not in grasp_arrays]
+    if missing:
+        raise FfcgsError(f"{what}: record lacks field(s) {', '.join(missing)}")
+    extra = set(grasp_arrays) - set(GRASP_ARRAYS) - set(OPTIONAL_GRASP_ARRAYS)
+    if extra or set(sdf_arrays) - set(SDF_ARRAYS):
+        raise FfcgsError(f"{what}: unknown array(s) {sorted(extra | (set(sdf_arrays) - set(SDF_ARRAYS)))}")
+    try:
+        rec = Record.create(**{k: sdf_meta[k] for k in _META_SCHEMA["required"] if k != "record_id"},
+                            category=sdf_meta.get("category", ""), info=sdf_meta.get("info"),
+                            **sdf_arrays, **grasp_arrays, index=index)
+    except FfcgsError as e:
+        raise FfcgsError(f"{what}: {e}") from None
+    if rec.record_id != sdf_meta["record_id"]:
+        raise FfcgsError(f"{what}: record id {sdf_meta['record_id']!r} does not match its object name and "
+                         f"rotation index (expected {rec.record_id!r})")
+    return rec

@@ -1,0 +1,108 @@
+"""Loading object meshes from files or built-in names, with the checks that keep broken input out of the SDF.
+
+Host only (NumPy and trimesh). Every problem with the caller's file raises `FfcgsError` naming the file.
+"""
+
+import pathlib
+import warnings
+
+import numpy as np
+import trimesh
+
+from ffcgs_jax.errors import FfcgsError
+from ffcgs_jax.geometry import objects
+
+FORMATS = ("obj", "stl", "ply", "off", "glb", "gltf")  # mesh formats trimesh reads that we accept
+MM_EXTENT = 2.0  # metres: a larger object is most likely in millimetres
+_FLAT = 1e-6  # a mesh thinner than this fraction of its size in some direction has no volume
+
+
+def load_mesh(source: str | pathlib.Path, scale: float = 1.0) -> trimesh.Trimesh:
+    """Read a triangle mesh in metres from a built-in object name or a file.
+
+    A glb/gltf scene is flattened into one mesh (node transforms applied). Meshes that are not watertight are
+    accepted with a warning: the SDF's winding-number sign handles holes. A watertight mesh whose faces wind
+    inward is flipped. An object larger than 2 m warns that it looks like millimetres.
+
+    Args:
+        source: a built-in name (see `objects.names()`) or a path to an obj, stl, ply, off, glb or gltf file.
+        scale: factor applied to the coordinates (0.001 turns millimetres into metres); must be > 0.
+
+    Returns:
+        The mesh, vertices merged, scaled.
+
+    Raises:
+        FfcgsError: missing file, unsupported or unreadable format, no triangles (point cloud, path, empty file),
+            NaN or inf coordinates, degenerate geometry (all faces of zero area, or flat), or scale <= 0.
+    """
+    if not (isinstance(scale, (int, float)) and np.isfinite(scale) and scale > 0):
+        raise FfcgsError(f"scale must be a finite number > 0, got {scale!r}")
+    path = _resolve(source)
+    mesh = _read(path)
+    name = str(path)
+
+    verts = np.asarray(mesh.vertices, np.float64)
+    faces = np.asarray(mesh.faces, np.int64).reshape(-1, 3)
+    if len(faces) == 0 or len(verts) == 0:
+        raise FfcgsError(f"mesh {name} is empty: it has no triangles")
+    if not np.isfinite(verts).all():
+        bad = int((~np.isfinite(verts).all(axis=1)).sum())
+        raise FfcgsError(f"mesh {name} has {bad} vertices with NaN or inf coordinates")
+    if faces.min() < 0 or faces.max() >= len(verts):
+        raise FfcgsError(f"mesh {name} has faces that index missing vertices")
+
+    mesh = trimesh.Trimesh(vertices=verts * float(scale), faces=faces, process=True)
+    used = mesh.vertices[np.unique(mesh.faces)]
+    size = float(np.ptp(used, axis=0).max())
+    if not mesh.area_faces.max() > 0 or size == 0:
+        raise FfcgsError(f"mesh {name} is degenerate: all its faces have zero area")
+    thickness = np.linalg.svd(used - used.mean(0), compute_uv=False)
+    if thickness[-1] <= _FLAT * thickness[0]:
+        raise FfcgsError(f"mesh {name} is flat (all vertices on one plane), so it encloses no volume")
+    if mesh.is_watertight:
+        if abs(mesh.volume) <= _FLAT * size**3:
+            raise FfcgsError(f"mesh {name} encloses zero volume")
+        if mesh.volume < 0:
+            mesh.invert()
+    else:
+        warnings.warn(
+            f"mesh {name} is not watertight (it has holes or open edges); the SDF's inside/outside comes from "
+            "winding numbers and stays usable, but check the object",
+            stacklevel=2,
+        )
+    if size > MM_EXTENT:
+        warnings.warn(
+            f"mesh {name} is {size:.3g} m across, which looks like millimetres; pass --scale 0.001 "
+            "(load_mesh(..., scale=0.001)) to load it in metres",
+            stacklevel=2,
+        )
+    return mesh
+
+
+def _resolve(source: str | pathlib.Path) -> pathlib.Path:
+    """Path of a built-in object (a bare name) or of a file, checked to exist and to have a mesh format."""
+    if isinstance(source, str) and source in objects.names():
+        return objects.path(source)
+    path = pathlib.Path(source)
+    if not path.is_file():
+        hint = "" if path.suffix else f" (built-in objects: {', '.join(objects.names())})"
+        raise FfcgsError(f"mesh file not found: {path}{hint}")
+    if path.suffix.lower().lstrip(".") not in FORMATS:
+        raise FfcgsError(f"mesh file {path} has unsupported format {path.suffix!r}; use one of {', '.join(FORMATS)}")
+    return path
+
+
+def _read(path: pathlib.Path) -> trimesh.Trimesh:
+    """Load with trimesh; a scene becomes one mesh; anything without triangles is refused."""
+    try:
+        loaded = trimesh.load(path, process=False)
+    except Exception as e:  # noqa: BLE001 - trimesh raises many types for a broken file
+        raise FfcgsError(f"cannot read mesh file {path}: {type(e).__name__}: {e}") from None
+    if isinstance(loaded, trimesh.Scene):
+        if not any(isinstance(g, trimesh.Trimesh) and len(g.faces) for g in loaded.geometry.values()):
+            kinds = ", ".join(sorted({type(g).__name__ for g in loaded.geometry.values()})) or "nothing"
+            raise FfcgsError(f"mesh file {path} holds no triangles (empty file or a scene of {kinds})")
+        loaded = loaded.to_mesh()
+    if not isinstance(loaded, trimesh.Trimesh):
+        raise FfcgsError(f"mesh file {path} is not a triangle mesh but a {type(loaded).__name__} (no faces)")
+    return loaded

@@ -1,0 +1,180 @@
+"""Hand specs: which MJCF sites, joints and channels the grasp pipeline uses (host side, no JAX).
+
+A hand is data, not code: any MJCF hand works given a small TOML spec next to it::
+
+    name = "toy"
+    mjcf = "toy.xml"                      # relative to the TOML file
+    root_body = "palm"                    # the body the wrist pose moves (must hang from the world, no joint)
+    contact_sites = ["tip_a", "tip_b"]    # one site per fingertip contact, in order
+    palm_site = "palm"                    # palm frame
+    palm_normal = [0, 1, 0]               # the direction the palm faces, in the root body frame
+    tetrahedron_sites = ["t0", "t1", "t2", "t3"]   # 4 palm points (the sampler's pose loss)
+
+    [channels]                            # the actuated channels q, in order
+    names = ["a", "b"]
+    lower = [0, 0]
+    upper = [1, 1]
+
+    [coupling]                            # qpos[joints[i]] = sum_k matrix[i][k] * q[k]
+    joints = ["ja", "jb", "jb2"]
+    matrix = [[1, 0], [0, 1], [0, 0.5]]
+
+Every MJCF hinge/slide joint must appear in `coupling.joints` (a joint left out would have no defined angle).
+"""
+
+import dataclasses
+import tomllib
+from importlib import resources
+from pathlib import Path
+
+import mujoco
+import numpy as np
+
+from ffcgs_jax.errors import FfcgsError
+
+_TOP_KEYS = {"name", "mjcf", "root_body", "contact_sites", "palm_site", "palm_normal", "tetrahedron_sites",
+             "channels", "coupling"}
+_CHANNEL_KEYS = {"names", "lower", "upper"}
+_COUPLING_KEYS = {"joints", "matrix"}
+BUILTIN_HANDS = ("svh",)
+
+
+@dataclasses.dataclass(frozen=True)
+class HandSpec:
+    """A validated hand spec. Tuples only, so it hashes and can sit in a jit-static field."""
+
+    name: str
+    mjcf_path: str
+    root_body: str
+    contact_sites: tuple[str, ...]
+    palm_site: str
+    palm_normal: tuple[float, float, float]
+    tetrahedron_sites: tuple[str, ...]
+    channel_names: tuple[str, ...]
+    lower: tuple[float, ...]
+    upper: tuple[float, ...]
+    coupling_joints: tuple[str, ...]
+    coupling: tuple[tuple[float, ...], ...]
+
+    def mj_model(self) -> mujoco.MjModel:
+        """Compile the MJCF (a fresh MjModel each call: callers may edit it)."""
+        try:
+            return mujoco.MjModel.from_xml_path(self.mjcf_path)
+        except ValueError as e:
+            raise FfcgsError(f"MJCF {self.mjcf_path} does not compile: {e}") from None
+
+
+def builtin_spec_path(name: str) -> Path:
+    if name not in BUILTIN_HANDS:
+        raise FfcgsError(f"unknown built-in hand {name!r}; built-in hands: {', '.join(BUILTIN_HANDS)}")
+    return Path(str(resources.files("ffcgs_jax.hand") / "assets" / name / f"{name}.toml"))
+
+
+def load_spec(source: str | Path = "svh") -> HandSpec:
+    """Read and validate a hand spec: a built-in name ("svh") or a path to a TOML file."""
+    path = Path(source)
+    if path.suffix != ".toml":
+        path = builtin_spec_path(str(source))
+    if not path.is_file():
+        raise FfcgsError(f"hand spec not found: {path}")
+    try:
+        raw = tomllib.loads(path.read_text())
+    except tomllib.TOMLDecodeError as e:
+        raise FfcgsError(f"hand spec {path} is not valid TOML: {e}") from None
+    where = f"hand spec {path}"
+    _keys(raw, _TOP_KEYS, where, required=_TOP_KEYS)
+    _keys(raw["channels"], _CHANNEL_KEYS, f"{where} [channels]", required=_CHANNEL_KEYS)
+    _keys(raw["coupling"], _COUPLING_KEYS, f"{where} [coupling]", required=_COUPLING_KEYS)
+    mjcf = (path.parent / raw["mjcf"]).resolve()
+    if not mjcf.is_file():
+        raise FfcgsError(f"{where}: mjcf file not found: {mjcf}")
+    ch = raw["channels"]
+    names = tuple(ch["names"])
+    lower = _floats(ch["lower"], f"{where} [channels] lower")
+    upper = _floats(ch["upper"], f"{where} [channels] upper")
+    if not (len(names) == len(lower) == len(upper)) or not names:
+        raise FfcgsError(f"{where}: [channels] names/lower/upper must be non-empty and of equal length, "
+                         f"got {len(names)}/{len(lower)}/{len(upper)}")
+    bad = [n for n, lo, hi in zip(names, lower, upper) if not lo < hi]
+    if bad:
+        raise FfcgsError(f"{where}: channel(s) {bad} need lower < upper")
+    joints = tuple(raw["coupling"]["joints"])
+    matrix = raw["coupling"]["matrix"]
+    shape = (len(joints), len(names))
+    if len(matrix) != shape[0] or any(not isinstance(r, list) or len(r) != shape[1] for r in matrix):
+        got = (len(matrix), sorted({len(r) if isinstance(r, list) else -1 for r in matrix}))
+        raise FfcgsError(f"{where}: [coupling] matrix must be {shape[0]}x{shape[1]} (joints x channels), "
+                         f"got {got[0]} rows of lengths {got[1]}")
+    normal = _floats(raw["palm_normal"], f"{where} palm_normal")
+    if len(normal) != 3 or not np.linalg.norm(normal) > 0:
+        raise FfcgsError(f"{where}: palm_normal must be a non-zero 3-vector, got {list(normal)}")
+    tet = tuple(raw["tetrahedron_sites"])
+    if len(tet) != 4:
+        raise FfcgsError(f"{where}: tetrahedron_sites must name exactly 4 sites, got {len(tet)}")
+    spec = HandSpec(
+        name=str(raw["name"]), mjcf_path=str(mjcf), root_body=str(raw["root_body"]),
+        contact_sites=tuple(raw["contact_sites"]), palm_site=str(raw["palm_site"]),
+        palm_normal=tuple(float(v) / float(np.linalg.norm(normal)) for v in normal),
+        tetrahedron_sites=tet, channel_names=names, lower=lower, upper=upper, coupling_joints=joints,
+        coupling=tuple(_floats(r, f"{where} [coupling] matrix") for r in matrix),
+    )
+    _check_names(spec, spec.mj_model(), where)
+    return spec
+
+
+def _check_names(spec: HandSpec, m: mujoco.MjModel, where: str) -> None:
+    def names(objtype, n):
+        return {mujoco.mj_id2name(m, objtype, i) for i in range(n)}
+
+    sites = names(mujoco.mjtObj.mjOBJ_SITE, m.nsite)
+    for field in ("contact_sites", "tetrahedron_sites", "palm_site"):
+        val = getattr(spec, field)
+        unknown = [s for s in ((val,) if isinstance(val, str) else val) if s not in sites]
+        if unknown:
+            raise FfcgsError(f"{where}: {field} names unknown site(s) {unknown}; sites in the MJCF: "
+                             f"{', '.join(sorted(s for s in sites if s))}")
+    if not spec.contact_sites:
+        raise FfcgsError(f"{where}: contact_sites is empty")
+    bodies = names(mujoco.mjtObj.mjOBJ_BODY, m.nbody)
+    if spec.root_body not in bodies:
+        raise FfcgsError(f"{where}: root_body {spec.root_body!r} is not a body of the MJCF; bodies: "
+                         f"{', '.join(sorted(b for b in bodies if b))}")
+    root = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_BODY, spec.root_body)
+    if m.body_parentid[root] != 0 or m.body_jntnum[root] != 0:
+        raise FfcgsError(f"{where}: root_body {spec.root_body!r} must be a child of the world with no joint "
+                         "(the wrist pose places it)")
+    joints = names(mujoco.mjtObj.mjOBJ_JOINT, m.njnt)
+    unknown = [j for j in spec.coupling_joints if j not in joints]
+    if unknown:
+        raise FfcgsError(f"{where}: [coupling] joints names unknown joint(s) {unknown}; joints in the MJCF: "
+                         f"{', '.join(sorted(joints))}")
+    if len(set(spec.coupling_joints)) != len(spec.coupling_joints):
+        raise FfcgsError(f"{where}: [coupling] joints lists a joint twice")
+    missing = sorted(joints - set(spec.coupling_joints))
+    if missing:
+        raise FfcgsError(f"{where}: MJCF joint(s) {missing} are not in [coupling] joints")
+    bad_type = [mujoco.mj_id2name(m, mujoco.mjtObj.mjOBJ_JOINT, j) for j in range(m.njnt)
+                if int(m.jnt_type[j]) not in (int(mujoco.mjtJoint.mjJNT_HINGE), int(mujoco.mjtJoint.mjJNT_SLIDE))]
+    if bad_type:
+        raise FfcgsError(f"{where}: only hinge/slide joints are supported, not {bad_type}")
+
+
+def _keys(table: dict, valid: set[str], where: str, required: set[str]) -> None:
+    if not isinstance(table, dict):
+        raise FfcgsError(f"{where} must be a table")
+    unknown = sorted(set(table) - valid)
+    if unknown:
+        raise FfcgsError(f"{where}: unknown key(s) {unknown}; valid keys: {', '.join(sorted(valid))}")
+    missing = sorted(required - set(table))
+    if missing:
+        raise FfcgsError(f"{where}: missing key(s) {missing}")
+
+
+def _floats(values, where: str) -> tuple[float, ...]:
+    try:
+        out = tuple(float(v) for v in values)
+    except (TypeError, ValueError):
+        raise FfcgsError(f"{where} must be a list of numbers, got {values!r}") from None
+    if not all(np.isfinite(out)):
+        raise FfcgsError(f"{where} must be finite, got {list(out)}")
+    return out

@@ -1,0 +1,111 @@
+"""The physics test's settings: `PhysicsConfig` and the protocol names."""
+
+import dataclasses
+
+from ffcgs_jax.config import check_range
+from ffcgs_jax.errors import FfcgsError
+
+PROTOCOLS = ("lift-shake", "six-dir")  # the physics tests `protocols.run_protocol` implements
+
+
+@dataclasses.dataclass(frozen=True)
+class PhysicsConfig:
+    """The physics test (`ffcgs eval`): MuJoCo scene, grasp execution and the success rules. Units: SI.
+
+    Attributes:
+        friction: tangential Coulomb friction of every hand-object and object-table contact (0.6 default; 0.2 is
+            the paper's metric value). Set on the object and table geoms with a higher geom priority, so it wins
+            over the hand's own value.
+        condim: contact dimensionality: 3 (point contact with friction, the model the LP metric assumes), 4 (adds
+            torsional friction), 6 (adds rolling).
+        torsional: torsional friction coefficient (metres), used when condim >= 4.
+        timestep: simulation step (2 ms: the fingers' position servos and the 5 mm capsules stay stable).
+        cone: "elliptic" (the exact Coulomb cone) or "pyramidal" (MuJoCo's default, what MJX runs fastest).
+        impratio: ratio of frictional to normal constraint impedance. MuJoCo's soft friction lets a held object
+            creep; at 100 the lift-shake results match those with MuJoCo's no-slip solver (which MJX lacks) on
+            the built-in mug, where 1 and 10 let half of those grasps slide out.
+        mass: object mass in kg (100 g), used when `density` is 0.
+        density: object density in kg/m^3; > 0 replaces `mass` with density x mesh volume.
+        kp: position-servo gain of the 9 channel actuators (N m/rad); the MJCF's value is 5.
+        squeeze: radians the close target goes beyond the grasp's q, along the channel direction that pushes the
+            fingertips near the surface into it (sum of J_i^T (-n_i), scaled so its largest channel moves by
+            `squeeze`). The servos then press with about kp x squeeze.
+        contact_band: fingertips within this distance of the surface (m) count for the squeeze direction.
+        open_fraction: the fingers start at (1 - open_fraction) q, on the straight channel path from the open
+            hand (q = 0, which the synthesis filters checked) to q; 1 = fully open.
+        close_time, settle_time: seconds to ramp the servos from start to target, then to hold before testing.
+        lift_height, lift_speed: lift-shake: the wrist rises this far (m) at this speed (m/s).
+        shake_amplitude, shake_cycles, shake_speed: lift-shake: then it moves +-amplitude along world x, this
+            many full cycles, sinusoidally at this mean speed (m/s): one cycle lasts 4 amplitude / speed.
+        max_slip: lift-shake success bound on the object's displacement relative to the palm (m), measured from
+            the end of closing to the end of shaking; the object must also be off the table.
+        accel: six-dir: the external force is accel x mass (N), gravity off, no table.
+        push_time: six-dir: seconds each of +x, -x, +y, -y, +z, -z is applied, each from the grasped state.
+        max_move, max_rot_deg: six-dir success bounds on the object's displacement (m) and rotation (degrees) in
+            every direction.
+        max_initial_penetration: a grasp whose hand reaches deeper than this into the object at the start
+            (metres, MuJoCo contact depth against the convex parts) fails without simulating.
+        workers: threads for CPU MuJoCo (`mujoco.rollout`); 0 = all cores.
+        coacd_threshold: CoACD's concavity threshold for the object's convex decomposition (smaller = more parts).
+        max_hulls: at most this many convex parts (CoACD `max_convex_hull`).
+        hull_vertices: at most this many vertices per part (CoACD `max_ch_vertex`).
+    """
+
+    friction: float = 0.6
+    condim: int = 3
+    torsional: float = 0.005
+    timestep: float = 0.002
+    cone: str = "elliptic"
+    impratio: float = 100.0
+    mass: float = 0.1
+    density: float = 0.0
+    kp: float = 5.0
+    squeeze: float = 0.2
+    contact_band: float = 0.01
+    open_fraction: float = 1.0
+    close_time: float = 0.5
+    settle_time: float = 0.5
+    lift_height: float = 0.10
+    lift_speed: float = 0.10
+    shake_amplitude: float = 0.10
+    shake_cycles: int = 6
+    shake_speed: float = 0.10
+    max_slip: float = 0.05
+    accel: float = 10.0
+    push_time: float = 2.0
+    max_move: float = 0.05
+    max_rot_deg: float = 15.0
+    max_initial_penetration: float = 0.01
+    workers: int = 0
+    coacd_threshold: float = 0.05
+    max_hulls: int = 32
+    hull_vertices: int = 64
+
+    def check(self) -> None:
+        check_range("physics.friction", self.friction, 0.0, 10.0)
+        if self.condim not in (1, 3, 4, 6):
+            raise FfcgsError(f"physics.condim must be 1, 3, 4 or 6, got {self.condim}")
+        if self.cone not in ("elliptic", "pyramidal"):
+            raise FfcgsError(f"physics.cone must be elliptic or pyramidal, got {self.cone!r}")
+        check_range("physics.torsional", self.torsional, 0.0, 1.0)
+        check_range("physics.timestep", self.timestep, 1e-5, 0.02)
+        check_range("physics.impratio", self.impratio, 0.1, 1000.0)
+        check_range("physics.mass", self.mass, 1e-4, 100.0)
+        check_range("physics.density", self.density, 0.0, 1e5)
+        check_range("physics.kp", self.kp, 0.0, 1e4)
+        check_range("physics.squeeze", self.squeeze, 0.0, 3.0)
+        check_range("physics.contact_band", self.contact_band, 0.0, 1.0)
+        check_range("physics.open_fraction", self.open_fraction, 0.0, 1.0)
+        for name in ("close_time", "settle_time", "push_time"):
+            check_range(f"physics.{name}", getattr(self, name), 0.0, 60.0)
+        for name in ("lift_height", "shake_amplitude", "max_slip", "max_move", "max_initial_penetration"):
+            check_range(f"physics.{name}", getattr(self, name), 0.0, 10.0)
+        for name in ("lift_speed", "shake_speed"):
+            check_range(f"physics.{name}", getattr(self, name), 1e-4, 100.0)
+        check_range("physics.shake_cycles", self.shake_cycles, 0, 1000)
+        check_range("physics.accel", self.accel, 0.0, 1000.0)
+        check_range("physics.max_rot_deg", self.max_rot_deg, 0.0, 180.0)
+        check_range("physics.workers", self.workers, 0, 4096)
+        check_range("physics.coacd_threshold", self.coacd_threshold, 0.01, 1.0)
+        check_range("physics.max_hulls", self.max_hulls, 1, 1024)
+        check_range("physics.hull_vertices", self.hull_vertices, 8, 4096)

@@ -1,0 +1,168 @@
+"""The physics test: do the synthesised grasps hold the object in MuJoCo?
+
+Execution of one grasp (all grasps of a batch in parallel):
+
+1. The hand is put at the grasp's wrist pose with the fingers at (1 - open_fraction) q, on the straight channel
+   path from the open hand (q = 0, which the synthesis filters checked against the object and the table) to q.
+   If the hand then reaches deeper than `max_initial_penetration` into the object at q, the grasp fails
+   ("penetration") without simulating.
+2. Close (six-dir: with the floating object welded in place, as the table holds it in lift-shake, so the first
+   finger to arrive does not push it away; the weld is released when the test starts): the servo targets ramp
+   linearly, over `close_time`, to q plus a squeeze: `squeeze` radians along
+   sum_i J_i^T (-n_i) over the fingertips within `contact_band` of the surface (J_i the tip's channel Jacobian,
+   n_i the mesh's outward normal there). The servos end up pressing with about kp x squeeze. Then `settle_time`.
+3. Test, by protocol:
+   - `lift-shake` (the paper's real-robot test, Table III): gravity on, object on the table. The wrist rises
+     `lift_height` with a cosine velocity profile at mean `lift_speed`, then moves +-`shake_amplitude` along world
+     x for `shake_cycles` sine cycles at mean `shake_speed`. Success: the object's position in the palm frame
+     moved less than `max_slip` from the end of closing, and it does not touch the table.
+   - `six-dir` (DexGraspBench): gravity off, no table. From the closed state, a force `accel` x mass along +x, -x,
+     +y, -y, +z, -z (world) in turn, each for `push_time` from the same closed state. Success: in every direction
+     the object moves less than `max_move` and turns less than `max_rot_deg` (largest over the push, sampled every
+     `backend.CHUNK` steps and at its end).
+
+Failure modes are recorded per grasp (`reason`): penetration; lost (no hand contact left: dropped or pushed out
+while closing); slip (still touched but moved past the bound).
+
+The simulator is CPU MuJoCo through `mujoco.rollout` (threads across grasps, no Python per step); the scene and
+the protocol are plain arrays, so `backend_mjx` runs the same plan on a GPU. The protocols and success
+rules are in `protocols`, the backends' interface in `backend`.
+"""
+
+from collections.abc import Callable
+
+import mujoco
+import numpy as np
+import trimesh
+
+from ffcgs_jax.errors import FfcgsError
+from ffcgs_jax.hand.spec import HandSpec
+from ffcgs_jax.physics import convex
+from ffcgs_jax.physics import scene as physics_scene
+from ffcgs_jax.physics.backend import Batch, mat_to_quat, pose_hand
+from ffcgs_jax.physics.backend_cpu import GROUP_PER_THREAD, CpuSim
+from ffcgs_jax.physics.config import PROTOCOLS, PhysicsConfig
+from ffcgs_jax.physics.protocols import result_key, run_protocol
+from ffcgs_jax.physics.scene import PhysicsScene
+
+BACKENDS = ("cpu", "mjx")
+
+
+def scenes(spec: HandSpec, mesh: trimesh.Trimesh, cfg: PhysicsConfig, protocols, table_z: float | None = None
+           ) -> dict[str, PhysicsScene]:
+    """One compiled scene per protocol (lift-shake: gravity and table; six-dir: neither)."""
+    parts = convex.decompose(mesh, cfg)
+    tz = float(mesh.bounds[0, 2]) if table_z is None else table_z
+    out = {}
+    for p in protocols:
+        lift = p == "lift-shake"
+        out[p] = physics_scene.build(spec, mesh, parts, cfg, gravity=lift, table_z=tz if lift else None,
+                                     hold=not lift)
+    return out
+
+
+
+def check_inputs(scene: PhysicsScene, wrist_pose, q) -> tuple[np.ndarray, np.ndarray]:
+    from ffcgs_jax.hand.kinematics import check_wrist_poses
+
+    T = check_wrist_poses(wrist_pose, "wrist_pose").reshape(-1, 4, 4)
+    qq = np.asarray(q, np.float64)
+    nq = len(scene.lower)
+    if qq.ndim != 2 or qq.shape != (len(T), nq):
+        raise FfcgsError(f"q must have shape ({len(T)}, {nq}) to match {len(T)} wrist poses, got {qq.shape}")
+    if not np.isfinite(qq).all():
+        raise FfcgsError("q contains NaN or inf")
+    return T, np.clip(qq, scene.lower, scene.upper)
+
+
+
+def prepare(scene: PhysicsScene, mesh: trimesh.Trimesh, wrist_pose, q, cfg: PhysicsConfig
+            ) -> tuple[Batch, np.ndarray, np.ndarray]:
+    """Servo start/target per grasp, the initial hand-object penetration depth (B,) at q (MuJoCo contact depth,
+    metres, >= 0) and whether the palm touches the object at q (B,)."""
+    from ffcgs_jax.evaluation.metrics import mesh_contacts
+
+    T, qq = check_inputs(scene, wrist_pose, q)
+    m = scene.model
+    d = mujoco.MjData(m)
+    b = len(T)
+    quat = np.array([mat_to_quat(t[:3, :3]) for t in T])
+    depth, palm = np.zeros(b), np.zeros(b, bool)
+    jac = np.zeros((b, len(scene.tip_sites), 3, qq.shape[1]))
+    tips = np.zeros((b, len(scene.tip_sites), 3))
+    jp = np.zeros((3, m.nv))
+    dof = m.jnt_dofadr[np.searchsorted(m.jnt_qposadr, scene.hand_qpos)]
+    for g in range(b):
+        pose_hand(scene, d, T[g, :3, 3], quat[g], qq[g])
+        mujoco.mj_forward(m, d)
+        depth[g], palm[g] = _contact_state(scene, d)
+        for k, s in enumerate(scene.tip_sites):
+            mujoco.mj_jacSite(m, d, jp, None, int(s))
+            jac[g, k] = jp[:, dof] @ scene.coupling
+            tips[g, k] = d.site_xpos[s]
+    _, normals, signed = mesh_contacts(mesh, tips)
+    near = (np.abs(signed) <= cfg.contact_band)[..., None]
+    direction = np.einsum("bkiq,bki->bq", jac, -normals * near)
+    scale = np.abs(direction).max(axis=1, keepdims=True)
+    direction = np.where(scale > 1e-12, direction / np.maximum(scale, 1e-12), 0.0)
+    target = np.clip(qq + cfg.squeeze * direction, scene.lower, scene.upper)
+    start = (1.0 - cfg.open_fraction) * qq
+    return Batch(T[:, :3, 3].copy(), quat, start, target), depth, palm
+
+
+
+def _contact_state(scene: PhysicsScene, d: mujoco.MjData) -> tuple[float, bool]:
+    """Deepest hand-object penetration (m, >= 0) and whether a palm geom touches the object."""
+    depth, palm = 0.0, False
+    obj = set(scene.obj_geoms.tolist())
+    hand = set(scene.hand_geoms.tolist())
+    palm_geoms = set(scene.palm_geoms.tolist())
+    for c in d.contact[: d.ncon]:
+        g1, g2 = int(c.geom1), int(c.geom2)
+        if (g1 in obj and g2 in hand) or (g2 in obj and g1 in hand):
+            depth = max(depth, -float(c.dist))
+            palm |= (g1 in palm_geoms or g2 in palm_geoms) and float(c.dist) < 0
+    return depth, palm
+
+
+
+def evaluate(spec: HandSpec, mesh: trimesh.Trimesh, wrist_pose, q, cfg: PhysicsConfig = PhysicsConfig(),
+             protocols=PROTOCOLS, backend: str = "cpu", table_z: float | None = None,
+             progress: Callable[[int], None] | None = None) -> dict[str, np.ndarray]:
+    """Run the physics test on grasps (wrist_pose (B, 4, 4) object frame, q (B, Q) channels).
+
+    CPU runs the grasps in groups of `GROUP_PER_THREAD` x threads, so `progress(k)` (k grasps done) ticks often;
+    MJX runs them as one batch. Returns flat per-grasp arrays for an npz: initial_penetration, palm_contact and,
+    per protocol p (with '-' written '_'), p_success, p_reason (index into protocols.REASONS), p_move (m), p_rot
+    (degrees) and for six-dir six_dir_move_dir, six_dir_rot_dir (B, 6)."""
+    cfg.check()
+    protocols = tuple(protocols)
+    for p in protocols:
+        if p not in PROTOCOLS:
+            raise FfcgsError(f"unknown protocol {p!r}; protocols: {', '.join(PROTOCOLS)}")
+    if backend not in BACKENDS:
+        raise FfcgsError(f"unknown physics backend {backend!r}; backends: {', '.join(BACKENDS)}")
+    if len(np.asarray(q).reshape(-1)) == 0:
+        raise FfcgsError("no grasps to test")
+    tick = progress or (lambda n: None)
+    built = scenes(spec, mesh, cfg, protocols, table_z)
+    # the scenes differ only in gravity, table and the hold weld, none of which the hand-object contacts, the
+    # fingertip Jacobians or the squeeze target depend on: prepare once
+    batch, depth, palm = prepare(built[protocols[0]], mesh, wrist_pose, q, cfg)
+    out: dict[str, np.ndarray] = {"initial_penetration": depth, "palm_contact": palm}
+    for p, scene in built.items():
+        if backend == "cpu":
+            sim = CpuSim(scene, cfg.workers)
+            group = GROUP_PER_THREAD * sim.nthread
+        else:
+            from ffcgs_jax.physics.backend_mjx import MjxSim
+
+            sim, group = MjxSim(scene), len(depth)
+        parts = []
+        for i in range(0, len(depth), group):
+            rows = slice(i, i + group)
+            parts.append(run_protocol(sim, batch.rows(rows), depth[rows], cfg, p))
+            tick(len(depth[rows]))
+        for k in parts[0]:
+            out[result_key(p, k)] = np.concatenate([r[k] for r in parts])
+    return out

@@ -1,0 +1,221 @@
+"""The configs of grasp synthesis: energy (eq. 5), the descent (Algorithm 1), filters, samplers and the
+pipeline's `GraspConfig`, which nests them with the SDF's.
+"""
+
+import dataclasses
+import math
+
+from ffcgs_jax.config import check_integer, check_range
+from ffcgs_jax.errors import FfcgsError
+from ffcgs_jax.geometry.config import SDFConfig
+
+LP_SOLVERS = ("jax", "proxsuite")
+
+
+@dataclasses.dataclass(frozen=True)
+class EnergyConfig:
+    """E = E_g + a_c E_c + a_q E_q (+ a_pen P), eq. 5 of the paper.
+
+    Attributes:
+        mu: friction coefficient of the linearised cone (paper: 0.2).
+        cone_edges: m, edges of the polyhedral friction cone (8).
+        basis_size: K directions on the 6-D unit sphere for the Q-distance LP (64: +-e_i and 52 spread ones; the
+            gauge then stays within a few per cent of the Euclidean distance while the LP stays small).
+        d0: E_c offset: 0 as in the paper's simulation, 0.005 for its real-robot setting (a slight squeeze).
+        a_c, a_q: weights of E_c (metres) and E_q (paper: 5 and 0.5).
+        a_pen: weight of the whole-hand collision penalty (`filters.penetration_penalty`, summed squared depths in
+            metres^2, so 1e4 makes a 1 cm deep link cost 1); the paper has none (0): it penalises fingertips only.
+        normal_grad: let gradients flow through the contact normals. The paper holds them fixed (dn/dc = 0), which
+            leaves E_g only the torques to work with: contacts bunched on one side then cannot spread out.
+        lp_solver: who solves the Q-distance LP: "jax" (a revised simplex inside the compiled graph, `lp_jax.py`)
+            or "proxsuite" (a host callback, `lp_host.py`, the reference path). Same values to 1e-9 in float64;
+            "jax" is the default on every backend because it measured faster on both the 2-core CPU (1.9x at 32
+            grasps) and an H200 (22x at 32; `ffcgs bench`, bench/RESULTS.md).
+        lp_pivots: the "jax" solver's pivot budget per LP; a solve that needs more is flagged not ok.
+
+    Defaults are this project's method; `configs/paper.toml` sets the paper's (a_pen 0, normal_grad false).
+    """
+
+    mu: float = 0.2
+    cone_edges: int = 8
+    basis_size: int = 64
+    d0: float = 0.0
+    a_c: float = 5.0
+    a_q: float = 0.5
+    a_pen: float = 1e4
+    normal_grad: bool = True
+    lp_solver: str = "jax"
+    lp_pivots: int = 100
+
+    def check(self) -> None:
+        if self.lp_solver not in LP_SOLVERS:
+            raise FfcgsError(f"unknown energy.lp_solver {self.lp_solver!r}; solvers: {', '.join(LP_SOLVERS)}")
+        check_integer("energy.lp_pivots", self.lp_pivots, 1, 100_000)
+        check_range("energy.mu", self.mu, 0.0, 2.0)
+        check_range("energy.cone_edges", self.cone_edges, 3, 64)
+        check_range("energy.basis_size", self.basis_size, 12, 1024)
+        check_range("energy.d0", self.d0, -0.05, 0.05)
+        for name in ("a_c", "a_q", "a_pen"):
+            check_range(f"energy.{name}", getattr(self, name), 0.0, 1e6)
+
+
+@dataclasses.dataclass(frozen=True)
+class OptimConfig:
+    """Algorithm 1: gradient descent on the channels q from q = 0, with a linearly decaying step.
+
+    Attributes:
+        iters: T, descent steps. The paper uses 50; with the wrist free there are 6 more variables and the hand
+            travels further, and at 50 steps most fingertips stop 1-2 cm short of the surface, so the default is
+            100 (`configs/paper.toml` keeps 50).
+        method: "gd", the paper's plain gradient descent q <- q - beta_t dE/dq, or "adam", the same with each
+            channel's step scaled by Adam's running gradient moments (see `optim.py` for why).
+        step, step_end: gd step size at the first and the last iteration (linear decay in between; rad per unit of
+            gradient).
+        lr, lr_end: adam's learning rate at the first and the last iteration (linear decay; about rad per step).
+        wrist: also move the wrist (beyond the paper, which keeps H fixed): a twist (rotation vector, translation
+            in the hand frame) is optimised with q, so fingers that cannot reach the surface from the sampled
+            pose can get there. The filters then judge the refined pose.
+        wrist_rot_scale, wrist_shift_scale: the wrist twist's step relative to the channels' (rad per rad,
+            metres per rad): with adam and lr 0.05, about 0.015 rad and 2.5 mm per step.
+
+    Defaults are this project's method (adam, wrist refinement); `configs/paper.toml` sets Algorithm 1 as published
+    (gd, fixed wrist). Measured on both in bench/RESULTS.md.
+        eps_g: a pose stops early once E_g < eps_g ...
+        eps_c: ... and its fingertips are on the surface (E_c < eps_c metres). The paper stops on E_g alone; with
+            normals taken from the SDF away from the surface, E_g can vanish before the fingers touch anything.
+    """
+
+    iters: int = 100
+    method: str = "adam"
+    step: float = 0.3
+    step_end: float = 0.03
+    lr: float = 0.05
+    lr_end: float = 0.005
+    eps_g: float = 1e-3
+    eps_c: float = 1e-3
+    wrist: bool = True
+    wrist_rot_scale: float = 0.3
+    wrist_shift_scale: float = 0.05
+
+    def check(self) -> None:
+        check_range("optim.wrist_rot_scale", self.wrist_rot_scale, 0.0, 100.0)
+        check_range("optim.wrist_shift_scale", self.wrist_shift_scale, 0.0, 100.0)
+        if self.method not in ("gd", "adam"):
+            raise FfcgsError(f"optim.method must be gd or adam, got {self.method!r}")
+        check_range("optim.lr", self.lr, 0.0, 10.0)
+        check_range("optim.lr_end", self.lr_end, 0.0, 10.0)
+        check_range("optim.iters", self.iters, 1, 100000)
+        check_range("optim.step", self.step, 0.0, 1e3)
+        check_range("optim.step_end", self.step_end, 0.0, 1e3)
+        check_range("optim.eps_g", self.eps_g, 0.0, 10.0)
+        check_range("optim.eps_c", self.eps_c, 0.0, 1.0)
+
+
+@dataclasses.dataclass(frozen=True)
+class FilterConfig:
+    """Thresholds of the pose and grasp filters.
+
+    Attributes:
+        palm_up_max: a pose is discarded when the world z component of its unit palm normal exceeds this. 0 keeps
+            palms facing sideways or down (the paper's "palm pointing upwards" rule, for an arm above the table);
+            1 disables the filter, -1 would keep only palms facing straight down.
+        clearance: metres each box corner must stay outside the object and the table (0 = touching is allowed).
+        tip_table_margin: metres the cached fingertip positions must stay above the table plane.
+    """
+
+    palm_up_max: float = 0.0
+    clearance: float = 0.0
+    tip_table_margin: float = 0.0
+
+    def check(self) -> None:
+        check_range("filters.palm_up_max", self.palm_up_max, -1.0, 1.0)
+        check_range("filters.clearance", self.clearance, 0.0, 1.0)
+        check_range("filters.tip_table_margin", self.tip_table_margin, -1.0, 1.0)
+
+
+SAMPLERS = ("cvae", "geometric", "random")  # the names `samplers.CORES` implements
+
+
+@dataclasses.dataclass(frozen=True)
+class SamplerConfig:
+    """Options of the wrist-pose samplers.
+
+    Attributes:
+        translation_scale: "random": the palm centre is uniform in the object's axis-aligned bounding box scaled by
+            this factor about its centre (paper, V.A.1: "two times the size of the object's bounding box").
+        standoff: "geometric": metres from the surface point to the palm centre, along the outward normal.
+            0.05 m, the smallest round standoff at which the open hand (q = 0) clears a flat face: its farthest
+            collision-box corner along the palm normal (the thumb's proximal link) lies 4.5 cm in front of the
+            palm centre, and on the built-in box the fraction of candidates passing the box-corner filter rises
+            from 26 % at 4-4.5 cm to 34 % at 5 cm and stays there. A larger standoff only moves the fingertips
+            away: along the palm normal they reach at most 4.2 cm (fingers, near mid-closure q = (lower +
+            upper) / 2) and 4.6 cm (thumb, at 30 % closure), and the fingertips' mean distance to the built-in
+            objects at mid-closure grows by about 0.7 cm per cm of standoff.
+        oversample: "geometric": candidates drawn per requested pose before the collision and palm-up filters.
+            About 6 % pass on the built-in mug (its cavity and the table reject most) and 34 % on the box, so
+            32 leaves about twice the poses needed on the mug; raise it for objects with little free surface.
+        cvae_oversample: "cvae": latent samples decoded per requested pose; the ones passing the pose filters are
+            kept first (see `samplers.sample_cvae`).
+        weights: "cvae": the weights file (`weights.npz` from `python -m train.sampler`); "" uses the weights
+            shipped in the package for the hand.
+    """
+
+    translation_scale: float = 2.0
+    standoff: float = 0.05
+    oversample: int = 32
+    cvae_oversample: int = 4
+    weights: str = ""
+
+    def check(self) -> None:
+        for name, lo, hi in (("translation_scale", 0.0, 100.0), ("standoff", 0.0, 1.0)):
+            v = getattr(self, name)
+            if not (isinstance(v, (int, float)) and math.isfinite(v) and lo < v <= hi):
+                raise FfcgsError(f"sampler.{name} must be a number in ({lo}, {hi}], got {v!r}")
+        if not (isinstance(self.oversample, int) and 1 <= self.oversample <= 4096):
+            raise FfcgsError(f"sampler.oversample must be an integer in [1, 4096], got {self.oversample!r}")
+        check_integer("sampler.cvae_oversample", self.cvae_oversample, 1, 4096)
+        if not isinstance(self.weights, str):
+            raise FfcgsError(f"sampler.weights must be a file path (or \"\" for the shipped weights), got "
+                             f"{self.weights!r}")
+
+
+@dataclasses.dataclass(frozen=True)
+class GraspConfig:
+    """Everything `synthesize` needs besides the hand and the object.
+
+    Attributes:
+        n: wrist poses sampled and optimised as one batch.
+        sampler: "cvae" (the learned sampler, weights shipped; the default since it beats geometric on E and E_g,
+            bench/RESULTS.md "Learned sampler"), "geometric" or "random" (Table I's baselines).
+        seed: PRNG seed of the sampler.
+        max_penetration: a grasp whose hand collision spheres reach deeper than this into the object (metres) is
+            not valid. 1 cm, as the physics test's initial-penetration rule; the paper does not check this.
+        max_contact_rms: a grasp whose fingertips are farther than this from the surface, as RMS (E_c, metres), is
+            not valid: it does not touch the object. 1 cm lets one finger of five miss by about 2 cm.
+        devices: local accelerators the batch of poses is split over (`jax.sharding`, each device optimises its
+            share independently): 0 = all local devices of JAX's default backend, k = the first k. The results
+            do not depend on it; a batch that does not divide evenly is padded.
+    """
+
+    n: int = 32
+    sampler: str = "cvae"
+    seed: int = 0
+    max_penetration: float = 0.01
+    max_contact_rms: float = 0.01
+    devices: int = 0
+    sdf: SDFConfig = SDFConfig()
+    energy: EnergyConfig = EnergyConfig()
+    optim: OptimConfig = OptimConfig()
+    filters: FilterConfig = FilterConfig()
+    sampling: SamplerConfig = SamplerConfig()
+
+    def check(self) -> None:
+        if not 1 <= self.n <= 1_000_000:
+            raise FfcgsError(f"n must be >= 1 (and at most 1e6), got {self.n}")
+        if self.sampler not in SAMPLERS:
+            raise FfcgsError(f"unknown sampler {self.sampler!r}; samplers: {', '.join(SAMPLERS)}")
+        if not 0 <= self.max_penetration <= 1:
+            raise FfcgsError(f"max_penetration must be in [0, 1] m, got {self.max_penetration}")
+        if not 0 <= self.max_contact_rms <= 1:
+            raise FfcgsError(f"max_contact_rms must be in [0, 1] m, got {self.max_contact_rms}")
+        check_integer("devices", self.devices, 0, 4096)

@@ -1,0 +1,241 @@
+"""The grasp pipeline: sample wrist poses, optimise the fingers (Algorithm 1), filter, evaluate.
+
+`synthesize` is what `ffcgs grasp` runs. The device part (sampling, descent, filters) is one jit-compiled
+function, compiled ahead of time so its compile time is measured apart from the synthesis time; the evaluation
+(Ferrari-Canny epsilon from the mesh itself) runs on the host afterwards with NumPy/SciPy.
+"""
+
+import dataclasses
+import functools
+import time
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+import mujoco
+import numpy as np
+import trimesh
+from jax.sharding import Mesh, NamedSharding
+from jax.sharding import PartitionSpec as P
+
+from ffcgs_jax.config import check_all
+from ffcgs_jax.errors import FfcgsError
+from ffcgs_jax.evaluation import metrics
+from ffcgs_jax.geometry import sdf as sdf_mod
+from ffcgs_jax.hand import kinematics as K
+from ffcgs_jax.hand.kinematics import Hand
+from ffcgs_jax.synthesis import filters as F
+from ffcgs_jax.synthesis import samplers, sharding
+from ffcgs_jax.synthesis.config import EnergyConfig, GraspConfig, OptimConfig
+from ffcgs_jax.synthesis.energy import Target, make_target
+from ffcgs_jax.synthesis.optimize import OptResult, _optimize
+
+
+class DeviceOut(NamedTuple):
+    poses: jax.Array
+    opt: OptResult
+    pose_collides: jax.Array
+    palm_up: jax.Array
+    tips_below_table: jax.Array
+    penetration: jax.Array
+    table_penetration: jax.Array
+
+
+class DeviceConfig(NamedTuple):
+    """The part of GraspConfig the compiled function depends on (the seed and the SDF settings are not)."""
+
+    sampler: str
+    sampling: samplers.SamplerConfig
+    energy: EnergyConfig
+    optim: OptimConfig
+    filters: F.FilterConfig
+
+
+def _device_part(hand: Hand, target: Target, key: jax.Array, given: jax.Array | None, cfg: DeviceConfig,
+                 n: int, given_q: jax.Array | None = None, sampler_params: dict | None = None,
+                 sampler_res: int | None = None, mesh: Mesh | None = None) -> DeviceOut:
+    if given is None:
+        palm_root = K.forward_kinematics(hand, jnp.eye(4, dtype=hand.lower.dtype), jnp.zeros_like(hand.lower)).palm_pos
+        poses = samplers.CORES[cfg.sampler](hand, palm_root, key, target.sdf, n, cfg.sampling, cfg.filters,
+                                            params=sampler_params, res=sampler_res, mesh=mesh)
+    else:
+        poses = given
+    # The trace is (T+1, B, ...): its pose axis is the second.
+    specs = DeviceOut(*[P(sharding.AXIS)] * 7)._replace(
+        opt=OptResult(*[P(sharding.AXIS)] * 6, trace=P(None, sharding.AXIS)))
+    return sharding.split(functools.partial(_descend_and_filter, cfg=cfg), mesh, (hand, target), (poses, given_q),
+                          specs)
+
+
+def _descend_and_filter(hand: Hand, target: Target, poses: jax.Array, given_q: jax.Array | None,
+                        cfg: DeviceConfig) -> DeviceOut:
+    opt = _optimize(hand, target, poses, cfg.energy, cfg.optim, given_q)
+    poses = opt.wrist_pose
+    tips = jnp.moveaxis(opt.trace.tips, 1, 0)  # (B, T+1, C, 3)
+    pen = jax.vmap(lambda H, q: F.hand_penetration(hand, target.sdf, H, q)[0])(poses, opt.q)
+    tpen = jax.vmap(lambda H, q: F.hand_table_penetration(hand, target.sdf, H, q)[0])(poses, opt.q)
+    return DeviceOut(
+        poses=poses,
+        opt=opt,
+        pose_collides=F.pose_collides_batch(hand, target.sdf, poses, cfg.filters),
+        palm_up=F.palm_up_batch(hand, poses, cfg.filters),
+        tips_below_table=jax.vmap(lambda t: F.tips_below_table(target.sdf, t, cfg.filters.tip_table_margin))(tips),
+        penetration=pen,
+        table_penetration=tpen,
+    )
+
+
+device_mesh = sharding.device_mesh
+_device_jit = jax.jit(_device_part, static_argnames=("cfg", "n", "sampler_res", "mesh"))
+_COMPILED: dict = {}
+
+
+def _compiled(hand: Hand, target: Target, key: jax.Array, given, dcfg: DeviceConfig, n: int, given_q=None,
+              sampler_params=None, sampler_res=None, mesh=None):
+    """Ahead-of-time compiled device part, cached like jit's own cache (AOT compiles bypass that cache), so that
+    compile time can be reported apart and a second object of the same grid size reuses the executable."""
+    shapes = jax.tree.map(lambda x: (x.shape, x.dtype), (target, key, given, given_q, sampler_params))
+    k = (hand.spec, dcfg, n, str(shapes), sampler_res, jax.default_backend(), mesh)
+    if k not in _COMPILED:
+        _COMPILED[k] = _device_jit.lower(hand, target, key, given, cfg=dcfg, n=n, given_q=given_q,
+                                         sampler_params=sampler_params, sampler_res=sampler_res,
+                                         mesh=mesh).compile()
+    return _COMPILED[k]
+
+
+@dataclasses.dataclass
+class GraspSet:
+    """Grasps of one object, host arrays; field meanings as in README's `grasps.npz` table."""
+
+    arrays: dict[str, np.ndarray]
+    trace: dict[str, np.ndarray]  # per-iteration E, E_g, E_c: (T+1, G)
+    config: GraspConfig
+    object_name: str
+
+    def __getitem__(self, key: str) -> np.ndarray:
+        return self.arrays[key]
+
+    def select(self, idx) -> "GraspSet":
+        """The grasps at `idx` (per-grasp arrays and trace columns; scalars kept)."""
+        n = len(self["valid"])
+        arrays = {k: (v[idx] if v.ndim and v.shape[0] == n and k not in ("channel_names", "joint_names") else v)
+                  for k, v in self.arrays.items()}
+        return GraspSet(arrays, {k: v[:, idx] for k, v in self.trace.items()}, self.config, self.object_name)
+
+    def order(self) -> np.ndarray:
+        """Grasp indices, valid ones first, each group by increasing E."""
+        return np.lexsort((self["E"], ~self["valid"]))
+
+
+def synthesize(hand: Hand, mesh: trimesh.Trimesh, cfg: GraspConfig = GraspConfig(), object_name: str = "object",
+               grid: sdf_mod.GradientSDF | None = None, poses: np.ndarray | None = None,
+               q: np.ndarray | None = None) -> GraspSet:
+    """Sample `cfg.n` wrist poses on the object (or take `poses`, (B, 4, 4), object frame), optimise the fingers,
+    filter and evaluate the grasps. `q` (B, Q), only with `poses`, starts the descent there instead of at the open
+    hand (the annotation planner does not: see `dataset.planner.plan` for why)."""
+    check_all(cfg)  # nested configs too: an unknown optim.method must not silently fall back
+    if grid is None:
+        grid = sdf_mod.build_sdf(mesh, cfg.sdf)
+    target = make_target(grid)
+    key = jax.random.PRNGKey(cfg.seed)
+    given = None
+    if poses is not None:
+        given = jnp.asarray(K.check_wrist_poses(poses, "wrist poses").reshape(-1, 4, 4), target.sdf.grid.dtype)
+    given_q = None
+    if q is not None:
+        if given is None:
+            raise FfcgsError("start channels q need the wrist poses they belong to (poses=...)")
+        qa = np.asarray(q)
+        if qa.shape != (given.shape[0], hand.n_channels) or not np.isfinite(qa).all():
+            raise FfcgsError(f"start channels q must be finite with shape ({given.shape[0]}, {hand.n_channels}), "
+                             f"got {qa.shape}")
+        given_q = jnp.asarray(qa, target.sdf.grid.dtype)
+    run, compile_s = compile_device(hand, target, cfg, given, given_q)
+    t0 = time.perf_counter()
+    out = jax.block_until_ready(run(key))
+    synthesis_s = time.perf_counter() - t0
+    return _finish(hand, mesh, target, cfg, out, synthesis_s, compile_s, object_name)
+
+
+def compile_device(hand: Hand, target: Target, cfg: GraspConfig, given: jax.Array | None = None,
+                   given_q: jax.Array | None = None):
+    """The compiled device part (sampling or `given` poses, descent, filters) as `run(key) -> DeviceOut`, and the
+    seconds its compilation took (0 when cached). For benchmarks: time `run` apart from host-side evaluation."""
+    n = cfg.n if given is None else given.shape[0]
+    dcfg = DeviceConfig(cfg.sampler if given is None else "given", cfg.sampling, cfg.energy, cfg.optim, cfg.filters)
+    params, res = None, None
+    if given is None:
+        params, res = samplers.sampler_params(cfg.sampler, hand, cfg.sampling)
+        params = jax.tree.map(lambda x: x.astype(target.sdf.grid.dtype), params)
+    mesh = device_mesh(cfg.devices)
+    if mesh.size > 1:  # inputs committed to one device (the hand's, the SDF's) must be on all of the mesh's
+        hand, target, given, given_q, params = jax.device_put((hand, target, given, given_q, params),
+                                                              NamedSharding(mesh, P()))
+    key0 = jax.random.PRNGKey(0)
+    t0 = time.perf_counter()
+    compiled = _compiled(hand, target, key0, given, dcfg, n, given_q, params, res, mesh)
+    return (lambda key: compiled(hand, target, key, given, given_q=given_q, sampler_params=params)), \
+        time.perf_counter() - t0
+
+
+def _finish(hand, mesh, target, cfg, out: DeviceOut, synthesis_s, compile_s, object_name) -> GraspSet:
+    opt = out.opt
+    q = np.asarray(opt.q, np.float64)
+    contacts = np.asarray(opt.final.contacts, np.float64)
+    penetration = np.asarray(out.penetration, np.float64)
+    ev = metrics.evaluate(mesh, contacts, q, np.asarray(hand.lower), np.asarray(hand.upper),
+                          metrics.MetricsConfig(mu=cfg.energy.mu, cone_edges=cfg.energy.cone_edges, d0=cfg.energy.d0,
+                                                a_c=cfg.energy.a_c, a_q=cfg.energy.a_q,
+                                                basis_size=cfg.energy.basis_size),
+                          centre=np.asarray(target.centre, np.float64), radius=float(target.radius),
+                          penetration=penetration)
+    E_c = np.asarray(opt.final.E_c, np.float64)
+    valid = (~np.asarray(out.pose_collides) & ~np.asarray(out.palm_up) & ~np.asarray(out.tips_below_table)
+             & np.asarray(opt.lp_ok) & (penetration <= cfg.max_penetration) & (E_c <= cfg.max_contact_rms))
+    m = hand.spec.mj_model()
+    joint_names = np.array([mujoco.mj_id2name(m, mujoco.mjtObj.mjOBJ_JOINT, j) for j in range(m.njnt)])
+    arrays = {
+        "wrist_pose": K.orthonormalize(np.asarray(out.poses, np.float64)),
+        "q": q,
+        "channel_names": np.array(hand.spec.channel_names),
+        "joint_pos": q @ np.asarray(hand.coupling, np.float64).T,
+        "joint_names": joint_names,
+        "contacts": contacts,
+        "E": np.asarray(opt.final.E, np.float64),
+        "E_g": np.asarray(opt.final.E_g, np.float64),
+        "E_c": E_c,
+        "E_q": np.asarray(opt.final.E_q, np.float64),
+        "epsilon": np.asarray(ev["epsilon"], np.float64),
+        "force_closure": np.asarray(ev["force_closure"]),
+        "E_g_mesh": np.asarray(ev["E_g"], np.float64),
+        "E_c_mesh": np.asarray(ev["E_c"], np.float64),
+        "penetration": penetration,
+        "table_penetration": np.asarray(out.table_penetration, np.float64),
+        "pose_collides": np.asarray(out.pose_collides),
+        "palm_up": np.asarray(out.palm_up),
+        "tips_below_table": np.asarray(out.tips_below_table),
+        "lp_ok": np.asarray(opt.lp_ok),
+        "iters": np.asarray(opt.iters),
+        "valid": valid,
+        "synthesis_s": np.asarray(synthesis_s, np.float64),
+        "compile_s": np.asarray(compile_s, np.float64),
+    }
+    trace = {k: np.asarray(getattr(opt.trace, k), np.float64) for k in ("E", "E_g", "E_c")}
+    return GraspSet(arrays, trace, cfg, object_name)
+
+
+def summary_rows(gs: GraspSet) -> list[tuple[str, str]]:
+    """The short table `ffcgs grasp` prints: counts and medians over the valid grasps."""
+    v = gs["valid"]
+    med = lambda k, s=1.0: f"{np.median(gs[k][v]) * s:.4g}" if v.any() else "-"  # noqa: E731
+    return [
+        ("grasps (valid / sampled)", f"{int(v.sum())} / {len(v)}"),
+        ("valid with epsilon > 0", f"{int((gs['epsilon'][v] > 0).sum())}"),
+        ("median E", med("E")),
+        ("median E_g", med("E_g")),
+        ("median E_c (cm)", med("E_c", 100)),
+        ("median epsilon", med("epsilon")),
+        ("median penetration (mm)", med("penetration", 1000)),
+        ("synthesis time (s)", f"{float(gs['synthesis_s']):.3f}"),
+        ("compile time (s)", f"{float(gs['compile_s']):.2f}"),
+    ]

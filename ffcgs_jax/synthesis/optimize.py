@@ -1,0 +1,123 @@
+"""Algorithm 1 of the paper over a whole batch of wrist poses: one jit-compiled descent on q (and the wrist).
+
+Every pose starts from q = 0 clamped into the joint limits (the SVH's open hand) and takes T steps: the paper's
+q <- clip(q - beta_t dE/dq) (`method="gd"`, beta_t decaying linearly from `step` to `step_end`) or the same with
+Adam's per-channel scaling (`method="adam"`, `lr` to `lr_end`). With `wrist=True` a 6-D twist of the wrist pose
+descends with q (`twist_pose`). A pose stops early (masked, the batch keeps its shape) once E_g < eps_g with the
+fingertips on the surface (E_c < eps_c). A pose whose LP failed
+at an iteration is not moved at that iteration. Fingertip positions are recorded at every iteration: they are the
+path the fingers sweep while closing, which the table filter checks.
+"""
+
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+from jaxtyping import Array, Bool, Float, Int
+
+from ffcgs_jax.hand.kinematics import Hand
+from ffcgs_jax.synthesis.config import EnergyConfig, OptimConfig
+from ffcgs_jax.synthesis.energy import Target, Terms, energy
+from ffcgs_jax.synthesis.optim import adam_init, adam_update
+
+
+class Trace(NamedTuple):
+    """Per-iteration history, index 0 = the start, index T = the result."""
+
+    E: Float[Array, "T B"]
+    E_g: Float[Array, "T B"]
+    E_c: Float[Array, "T B"]
+    tips: Float[Array, "T B C 3"]
+
+
+class OptResult(NamedTuple):
+    q: Float[Array, "B Q"]
+    wrist_pose: Float[Array, "B 4 4"]  # the input poses, or the refined ones with optim.wrist
+    final: Terms  # each field with a leading B
+    iters: Int[Array, " B"]  # descent steps taken before the early stop
+    converged: Bool[Array, " B"]  # stopped early (E_g < eps_g and E_c < eps_c)
+    lp_ok: Bool[Array, " B"]  # every LP of this pose solved
+    trace: Trace
+
+
+def twist_pose(H: Float[Array, "4 4"], xi: Float[Array, " 6"]) -> Float[Array, "4 4"]:
+    """H @ [R(xi[:3]) | xi[3:]]: a rotation vector and a translation applied in the hand's root frame."""
+    w = xi[:3]
+    th2 = jnp.sum(w**2)
+    th = jnp.sqrt(th2 + 1e-30)
+    K = jnp.array([[0.0, -w[2], w[1]], [w[2], 0.0, -w[0]], [-w[1], w[0], 0.0]], dtype=xi.dtype)
+    small = th2 < 1e-12  # Taylor terms near 0 keep the derivative exact there
+    a = jnp.where(small, 1.0 - th2 / 6, jnp.sin(th) / th)
+    b = jnp.where(small, 0.5 - th2 / 24, (1 - jnp.cos(th)) / jnp.where(small, 1.0, th2))
+    R = jnp.eye(3, dtype=xi.dtype) + a * K + b * (K @ K)
+    D = jnp.eye(4, dtype=xi.dtype).at[:3, :3].set(R).at[:3, 3].set(xi[3:])
+    return H @ D
+
+
+def _optimize(hand: Hand, target: Target, poses, energy_cfg: EnergyConfig, optim_cfg: OptimConfig,
+              q_start=None) -> OptResult:
+    B = poses.shape[0]
+    T = optim_cfg.iters
+    wrist = optim_cfg.wrist
+
+    def total(H, x, lp_basis):
+        q, xi = x
+        return energy(hand, target, twist_pose(H, xi) if wrist else H, q, energy_cfg, lp_basis)
+
+    value_and_grad = jax.vmap(jax.value_and_grad(total, argnums=1, has_aux=True))
+    q0 = jnp.zeros_like(hand.lower) if q_start is None else jnp.asarray(q_start, hand.lower.dtype)
+    q0 = jnp.clip(jnp.broadcast_to(q0, (B, hand.n_channels)), hand.lower[None], hand.upper[None])
+    xi0 = jnp.zeros((B, 6), poses.dtype)
+    # per-variable scale of the step: channels in rad, wrist rotation in rad, wrist translation in metres
+    scale = (jnp.ones_like(hand.lower),
+             jnp.concatenate([jnp.full(3, optim_cfg.wrist_rot_scale), jnp.full(3, optim_cfg.wrist_shift_scale)])
+             .astype(poses.dtype))
+
+    adam = optim_cfg.method == "adam"
+    first, last = (optim_cfg.lr, optim_cfg.lr_end) if adam else (optim_cfg.step, optim_cfg.step_end)
+
+    def step(carry, t):
+        x, active, iters, lp_ok, state, lp_basis = carry
+        (_, terms), g = value_and_grad(poses, x, lp_basis)
+        done = (terms.E_g < optim_cfg.eps_g) & (terms.E_c < optim_cfg.eps_c)
+        active = active & ~done
+        beta = first + (last - first) * t / max(T - 1, 1)
+        move = active & terms.lp_ok
+        g = jax.tree.map(lambda a: jnp.where(jnp.isfinite(a), a, 0.0), g)
+        if adam:
+            delta, state = adam_update(g, state, beta)
+        else:
+            delta = jax.tree.map(lambda a: -beta * a, g)
+        delta = jax.tree.map(lambda d, s_: d * s_[None, :], delta, scale)
+        q_new = jnp.where(move[:, None], jnp.clip(x[0] + delta[0], hand.lower[None], hand.upper[None]), x[0])
+        xi_new = jnp.where(move[:, None] & wrist, x[1] + delta[1], x[1])
+        record = (terms.E, terms.E_g, terms.E_c, terms.contacts)
+        return ((q_new, xi_new), active, iters + active, lp_ok & (terms.lp_ok | ~active), state,
+                terms.lp_basis), record
+
+    x0 = (q0, xi0)
+    # each step's LP starts from the previous step's optimal basis: the wrenches move little per step, so it is
+    # often still optimal or a few pivots away (-1s: no warm start for the first step)
+    init = (x0, jnp.ones(B, bool), jnp.zeros(B, jnp.int32), jnp.ones(B, bool), adam_init(x0),
+            jnp.full((B, 7), -1, jnp.int32))
+    ((q, xi), active, iters, lp_ok, _, lp_basis), hist = jax.lax.scan(step, init, jnp.arange(T))
+    poses = jax.vmap(twist_pose)(poses, xi) if wrist else poses
+    _, final = jax.vmap(lambda H, qq, b: energy(hand, target, H, qq, energy_cfg, b))(poses, q, lp_basis)
+    trace = Trace(*(jnp.concatenate([h, f[None]], 0) for h, f in
+                    zip(hist, (final.E, final.E_g, final.E_c, final.contacts))))
+    converged = (final.E_g < optim_cfg.eps_g) & (final.E_c < optim_cfg.eps_c)
+    return OptResult(q, poses, final, iters, converged, lp_ok & final.lp_ok, trace)
+
+
+optimize = jax.jit(_optimize, static_argnames=("energy_cfg", "optim_cfg"))
+optimize.__doc__ = """Optimise the channels of B wrist poses (B, 4, 4) on one target; see the module docstring.
+
+Args:
+    hand: from `kinematics.load_hand`.
+    target: `energy.make_target(sdf)`.
+    poses: (B, 4, 4) wrist poses in the object frame.
+    q_start: optional (B, Q) starting channels (clipped to the limits); default the open hand, q = 0.
+    energy_cfg, optim_cfg: frozen configs (static: a new config compiles a new function).
+Returns:
+    OptResult with q (B, Q), the final energy terms, iteration counts, flags and the per-iteration trace.
+"""

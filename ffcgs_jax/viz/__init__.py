@@ -1,0 +1,1 @@
+"""Pictures: the hand-and-object scene, MuJoCo and software renderers, grasp and SDF figures."""

@@ -1,0 +1,189 @@
+"""The grasp pipeline `synthesize` end to end on the SVH: output fields, their consistency, determinism, presets.
+
+Each SVH compile of the device part costs ~30 s on a 2-core CPU, so the module holds three: the box with this
+project's method (geometric sampler, adam + wrist + penalty) and the ball with the random sampler under the
+paper's preset; given poses (which skip the sampler: a third function) are marked slow. Everything else reuses them.
+"""
+
+import dataclasses
+
+import jax
+import numpy as np
+import pytest
+
+from ffcgs_jax.errors import FfcgsError
+from ffcgs_jax.geometry import mesh_io
+from ffcgs_jax.geometry import sdf as sdf_mod
+from ffcgs_jax.geometry.config import SDFConfig
+from ffcgs_jax.hand import kinematics as K
+from ffcgs_jax.synthesis import grasp as G
+from ffcgs_jax.synthesis import samplers
+from ffcgs_jax.synthesis.config import EnergyConfig, OptimConfig
+from ffcgs_jax.viz import scene
+
+N, ITERS = 4, 5
+BOX = G.GraspConfig(n=N, sdf=SDFConfig(res=16), optim=OptimConfig(iters=ITERS))
+PAPER = dataclasses.replace(BOX, sampler="random", energy=EnergyConfig(a_pen=0.0, normal_grad=False),
+                            optim=OptimConfig(iters=ITERS, method="gd", wrist=False))
+ATOL_FK = 1e-9  # MJX (saved contacts) vs MuJoCo C forward kinematics, float64, metres
+FIELDS = {  # name: (shape with G for the grasp count, dtype kind)
+    "wrist_pose": (("G", 4, 4), "f"), "q": (("G", 9), "f"), "joint_pos": (("G", 20), "f"), "joint_names": ((20,), "U"),
+    "contacts": (("G", 5, 3), "f"), "E": (("G",), "f"), "E_g": (("G",), "f"), "E_c": (("G",), "f"),
+    "E_q": (("G",), "f"), "epsilon": (("G",), "f"), "penetration": (("G",), "f"), "valid": (("G",), "b"),
+    "pose_collides": (("G",), "b"), "palm_up": (("G",), "b"), "tips_below_table": (("G",), "b"),
+    "lp_ok": (("G",), "b"), "synthesis_s": ((), "f"), "compile_s": ((), "f"),
+}
+
+
+def synth(hand, mesh, cfg, name, **kw):
+    return G.synthesize(hand, mesh, cfg, name, **kw)
+
+
+@pytest.fixture(scope="module")
+def svh():
+    return K.load_hand("svh")
+
+
+@pytest.fixture(scope="module")
+def meshes():
+    return {"box": mesh_io.load_mesh("box"), "ball": mesh_io.load_mesh("ball")}
+
+
+@pytest.fixture(scope="module")
+def box_run(svh, meshes):
+    return synth(svh, meshes["box"], BOX, "box")
+
+
+@pytest.fixture(scope="module")
+def ball_paper_run(svh, meshes):
+    return synth(svh, meshes["ball"], PAPER, "ball")
+
+
+@pytest.fixture(params=["box_run", "ball_paper_run"])
+def run(request):
+    return request.getfixturevalue(request.param)
+
+
+def test_fields_shapes_and_dtypes(run):
+    a = run.arrays
+    G_ = len(a["valid"])
+    assert G_ == N
+    for name, (shape, kind) in FIELDS.items():
+        assert name in a, name
+        assert a[name].shape == tuple(G_ if s == "G" else s for s in shape), (name, a[name].shape)
+        assert a[name].dtype.kind == kind, (name, a[name].dtype)
+    for name in ("wrist_pose", "q", "contacts", "E", "E_g", "E_c", "E_q", "penetration"):
+        assert np.isfinite(a[name]).all(), name
+    assert a["compile_s"] >= 0 and a["synthesis_s"] > 0
+    assert {k: v.shape for k, v in run.trace.items()} == {k: (ITERS + 1, N) for k in ("E", "E_g", "E_c")}
+    np.testing.assert_allclose(run.trace["E"][-1], a["E"], rtol=1e-12)
+
+
+def test_channels_within_limits_and_joints_follow_the_coupling(run, svh):
+    q = run["q"]
+    assert (q >= np.asarray(svh.lower) - 1e-12).all() and (q <= np.asarray(svh.upper) + 1e-12).all()
+    np.testing.assert_allclose(run["joint_pos"], q @ np.asarray(svh.coupling).T, atol=1e-15)
+    m = svh.spec.mj_model()
+    assert run["joint_names"].tolist() == [m.joint(j).name for j in range(m.njnt)]
+    assert (run["iters"] <= ITERS).all() and (run["iters"] >= 0).all()
+
+
+def test_contacts_are_the_forward_kinematics_of_the_saved_grasp(run, svh):
+    """Checked with MuJoCo C: the hand placed at the saved wrist pose with the saved channels."""
+    for i in range(N):
+        m, d = scene.build_scene(svh.spec, run["wrist_pose"][i])
+        scene.set_channels(m, d, np.asarray(svh.coupling), run["q"][i])
+        np.testing.assert_allclose(run["contacts"][i], d.site_xpos[list(svh.contact_site_ids)], atol=ATOL_FK)
+    R = run["wrist_pose"][:, :3, :3]
+    np.testing.assert_allclose(R @ np.swapaxes(R, 1, 2), np.broadcast_to(np.eye(3), R.shape), atol=1e-9)
+    np.testing.assert_allclose(run["wrist_pose"][:, 3], np.tile([0, 0, 0, 1.0], (N, 1)), atol=0)
+
+
+def test_valid_is_the_and_of_the_filters(run):
+    a, cfg = run.arrays, run.config
+    expected = (~a["pose_collides"] & ~a["palm_up"] & ~a["tips_below_table"] & a["lp_ok"]
+                & (a["penetration"] <= cfg.max_penetration))
+    expected &= a["E_c"] <= cfg.max_contact_rms  # fingertips must touch
+    np.testing.assert_array_equal(a["valid"], expected)
+    order = run.order()
+    assert sorted(order.tolist()) == list(range(N))
+    v, E = a["valid"][order], a["E"][order]
+    assert (np.diff(v.astype(int)) <= 0).all()  # valid ones first
+    for group in (v, ~v):
+        assert (np.diff(E[group]) >= 0).all()
+    rows = dict(G.summary_rows(run))
+    assert rows["grasps (valid / sampled)"] == f"{int(a['valid'].sum())} / {N}"
+
+
+def test_energy_is_at_least_its_saved_parts(run):
+    a, e = run.arrays, run.config.energy
+    parts = a["E_g"] + e.a_c * a["E_c"] + e.a_q * a["E_q"]
+    assert (a["E"] >= parts - 1e-9).all()
+    if e.a_pen == 0:  # no penalty: E is exactly its parts
+        np.testing.assert_allclose(a["E"], parts, rtol=1e-12)
+
+
+def test_deterministic_for_a_seed_and_the_executable_is_reused(svh, meshes, box_run):
+    again = synth(svh, meshes["box"], BOX, "box")
+    for k, v in box_run.arrays.items():
+        if k not in ("synthesis_s", "compile_s"):
+            np.testing.assert_array_equal(again[k], v, err_msg=k)
+    assert again.arrays["compile_s"] < 0.5  # reused (a fresh compile of the SVH pipeline takes tens of seconds)
+    other = synth(svh, meshes["box"], dataclasses.replace(BOX, seed=1), "box")
+    assert other.arrays["compile_s"] < 0.5  # the seed is not compiled in
+    assert np.abs(other["wrist_pose"] - box_run["wrist_pose"]).max() > 1e-3
+
+
+def test_paper_preset_keeps_the_sampled_wrist_poses(svh, meshes, ball_paper_run):
+    grid = sdf_mod.build_sdf(meshes["ball"], PAPER.sdf)
+    sample = samplers.make_sampler("random", svh, PAPER.sampling, PAPER.filters)
+    sampled = np.asarray(sample(jax.random.PRNGKey(PAPER.seed), grid, N))
+    np.testing.assert_allclose(ball_paper_run["wrist_pose"], sampled, atol=1e-12)
+
+
+@pytest.mark.slow  # a third SVH compile (~13 s): `poses=` is its own device function
+def test_given_poses_skip_sampling(svh, meshes, box_run):
+    """Three given poses with the paper preset (fixed wrist): three grasps, at exactly those poses."""
+    given = box_run["wrist_pose"][:3]
+    cfg = dataclasses.replace(PAPER, sampler="geometric")
+    gs = synth(svh, meshes["box"], cfg, "box", poses=given)
+    assert len(gs["valid"]) == 3 and gs["q"].shape == (3, 9) and gs.trace["E"].shape == (ITERS + 1, 3)
+    np.testing.assert_array_equal(gs["wrist_pose"], given)
+    np.testing.assert_allclose(gs["E"], gs["E_g"] + 5.0 * gs["E_c"] + 0.5 * gs["E_q"], rtol=1e-12)
+
+
+@pytest.mark.parametrize("cfg, message", [
+    (G.GraspConfig(n=0), "n must be >= 1"),
+    (G.GraspConfig(sampler="learned"), "unknown sampler 'learned'"),
+    (G.GraspConfig(max_penetration=-0.1), "max_penetration"),
+])
+def test_bad_config_raises(svh, meshes, cfg, message):
+    with pytest.raises(FfcgsError, match=message):
+        G.synthesize(svh, meshes["box"], cfg)
+
+
+def test_bad_given_poses_raise(svh, meshes):
+    bad = np.tile(np.eye(4), (2, 1, 1))
+    bad[1, 0, 0] = np.nan
+    with pytest.raises(FfcgsError, match="NaN"):
+        G.synthesize(svh, meshes["box"], BOX, poses=bad)
+    with pytest.raises(FfcgsError, match=r"shape \(4, 4\) or \(B, 4, 4\)"):
+        G.synthesize(svh, meshes["box"], BOX, poses=np.zeros((2, 3, 4)))
+
+
+def test_nested_config_is_validated_before_compiling(svh, meshes, monkeypatch):
+    def no_compile(*a, **k):
+        raise AssertionError("reached compilation with an invalid config")
+
+    monkeypatch.setattr(G, "_compiled", no_compile)
+    with pytest.raises(FfcgsError, match="optim.method"):
+        G.synthesize(svh, meshes["box"], dataclasses.replace(BOX, optim=OptimConfig(iters=ITERS, method="sgd")))
+
+
+def test_lowering_a_function_of_a_hand():
+    hand = K.load_hand("tests/data/toy_hand/toy.toml")
+    jax.jit(lambda h: h.lower).lower(hand)
+
+
+def test_summary_rows_type_checks(box_run):
+    assert G.summary_rows(box_run)[-1][0] == "compile time (s)"

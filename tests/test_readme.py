@@ -1,0 +1,37 @@
+"""README's Python API section runs as written, using only the public API."""
+
+import ast
+import os
+import re
+import subprocess
+import sys
+
+import ffcgs_jax
+from paths import REPO
+
+
+def api_block() -> str:
+    text = (REPO / "README.md").read_text()
+    section = text.split("\n## Python API\n", 1)[1].split("\n## ", 1)[0]
+    blocks = re.findall(r"```python\n(.*?)```", section, re.S)
+    assert len(blocks) == 1, "README's Python API section should hold one python block"
+    return blocks[0]
+
+
+def test_readme_api_uses_only_the_public_names():
+    tree = ast.parse(api_block())
+    used = {n.attr for n in ast.walk(tree)
+            if isinstance(n, ast.Attribute) and isinstance(n.value, ast.Name) and n.value.id == "fj"}
+    assert used and used <= set(ffcgs_jax.__all__), used - set(ffcgs_jax.__all__)
+    imported = {a.name for n in ast.walk(tree) if isinstance(n, (ast.Import, ast.ImportFrom)) for a in n.names}
+    assert "..." not in api_block() and imported <= {"numpy", "ffcgs_jax"}, imported
+
+
+def test_readme_api_runs_as_written(tmp_path):
+    env = dict(os.environ, JAX_PLATFORMS="cpu", FFCGS_JAX_CACHE="off")
+    r = subprocess.run([sys.executable, "-c", api_block()], capture_output=True, text=True, cwd=tmp_path, env=env,
+                       timeout=600)
+    assert r.returncode == 0, r.stderr[-2000:]
+    valid = re.search(r"^(\d+) valid of 8", r.stdout, re.M)
+    assert valid and int(valid.group(1)) >= 1, r.stdout
+    assert re.search(r"^six-dir success: \[\s*(True|False)\s+(True|False)\]$", r.stdout, re.M), r.stdout
