@@ -6,8 +6,11 @@ path)` reads a TOML file into it; the CLI then lets any field be overridden (`--
 hash, so a config can be a static jit argument.
 """
 
+import contextlib
 import dataclasses
+import io
 import math
+import sys
 import tomllib
 import typing
 from pathlib import Path
@@ -116,7 +119,36 @@ def with_overrides(cls: type[T], argv: list[str], prog: str, keep_prefixes: bool
 
     path, argv = split_config_arg(argv)
     default = cls() if path is None else load(cls, path)
-    cfg = tyro.cli(cls, default=default, args=argv, prog=prog,
-                   config=() if keep_prefixes else (tyro.conf.OmitArgPrefixes,), description=cls.__doc__)
+    captured = io.StringIO()
+    try:
+        with contextlib.redirect_stderr(captured):
+            cfg = tyro.cli(cls, default=default, args=argv, prog=prog,
+                           config=() if keep_prefixes else (tyro.conf.OmitArgPrefixes,), description=cls.__doc__)
+    except SystemExit as e:
+        if e.code in (0, None):  # --help
+            sys.stderr.write(captured.getvalue())
+            raise
+        raise FfcgsError(f"{prog}: {_one_line(captured.getvalue())} (see {prog} --help)") from None
+    sys.stderr.write(captured.getvalue())  # tyro's warnings, if any
     check_all(cfg)
     return cfg
+
+
+_BOX = "│╭╮╰╯─┃┏┓┗┛━"
+
+
+def _one_line(text: str) -> str:
+    """tyro's boxed parse error as one line: the box's title and its first paragraph."""
+    lines = [ln.strip().strip(_BOX).strip() for ln in text.splitlines()]
+    title = lines[0].strip(_BOX + " ") if lines else ""
+    body = []
+    for ln in lines[1:]:
+        if not ln.strip(_BOX + " -"):
+            if body:
+                break
+            continue
+        if set(ln) <= set(_BOX + " -"):  # the separator before the help text (dashes without a terminal font)
+            break
+        body.append(ln)
+    message = " ".join(body) or "invalid arguments"
+    return f"{title.lower()}: {message}" if title else message

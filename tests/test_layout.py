@@ -11,6 +11,7 @@ import textwrap
 import pytest
 
 import ffcgs_jax
+
 from paths import REPO, TESTS
 
 PACKAGE = REPO / "ffcgs_jax"

@@ -7,6 +7,7 @@ import subprocess
 import sys
 
 import ffcgs_jax
+
 from paths import REPO
 
 

@@ -19,6 +19,7 @@ from pathlib import Path
 import numpy as np
 import tyro
 
+from ffcgs_jax import files
 from ffcgs_jax.config import _coerce, check_all, load, split_config_arg
 from ffcgs_jax.errors import FfcgsError
 from ffcgs_jax.learning import data as cvae_data
@@ -101,7 +102,7 @@ def run_cv(cfg: TrainConfig) -> dict:
               f"{100 * r['val_rec']:.2f} | {r['val_kl']:.2f} | {r['time_s']:.0f} |" for r in rows]
     lines.append(f"\nvalidation reconstruction over {len(rows)} folds: {100 * val.mean():.2f} ± "
                  f"{100 * val.std():.2f} cm (mean ± std)")
-    (Path(cfg.out) / "cv.md").write_text("\n".join(lines) + "\n")
+    files.write_text(Path(cfg.out) / "cv.md", "\n".join(lines) + "\n")
     print("\n".join(lines))
     return {"val_rec": float(val.mean()), "val_rec_std": float(val.std()),
             "train_rec": float(np.mean([r["train_rec"] for r in rows])),
@@ -131,8 +132,8 @@ def run_sweep(cfg: TrainConfig, grid: list[tuple[str, list]]) -> list[dict]:
     lines += ["| " + " | ".join(str(v) for v in r["values"]) + f" | {fmt(r['train_rec'])} | {fmt(r['val_rec'])} | "
               f"{'-' if r['val_kl'] is None else format(r['val_kl'], '.2f')} | {r['time_s']:.0f} |" for r in rows]
     Path(cfg.out).mkdir(parents=True, exist_ok=True)
-    (Path(cfg.out) / "sweep.md").write_text("\n".join(lines) + "\n")
-    (Path(cfg.out) / "sweep.json").write_text(json.dumps(rows, indent=1, default=str))
+    files.write_text(Path(cfg.out) / "sweep.md", "\n".join(lines) + "\n")
+    files.write_text(Path(cfg.out) / "sweep.json", json.dumps(rows, indent=1, default=str))
     print("\n".join(lines))
     return rows
 

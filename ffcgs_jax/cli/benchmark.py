@@ -27,6 +27,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ffcgs_jax import files
 from ffcgs_jax.errors import FfcgsError
 
 DEFAULT_BATCHES = {"gpu": (32, 1024, 8192, 65536), "cpu": (32, 256, 1024)}
@@ -189,7 +190,7 @@ def write_results(path: str | Path, report: dict) -> None:
             text = text.rstrip("\n") + f"\n\n{_SECTION}\n\nWritten by `ffcgs bench` (`ffcgs_jax/benchmark.py`); " \
                 "one block per machine, replaced when the bench runs there again.\n"
         text = text.rstrip("\n") + "\n\n" + block
-    path.write_text(text)
+    files.write_text(path, text)
 
 
 def _print(line: str) -> None:
@@ -257,4 +258,4 @@ def command_line(cmd) -> str:
 
 
 def save_json(report: dict, path: str | Path) -> None:
-    Path(path).write_text(json.dumps(report, indent=1))
+    files.write_text(files.check_output(path, "JSON report"), json.dumps(report, indent=1))

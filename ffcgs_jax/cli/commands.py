@@ -5,6 +5,7 @@ Parsing and the entry point are `cli.main`'s.
 
 import dataclasses
 import json
+import math
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -12,6 +13,7 @@ from pathlib import Path
 import numpy as np
 import tyro
 
+from ffcgs_jax import files
 from ffcgs_jax.dataset.config import DatasetConfig
 from ffcgs_jax.errors import FfcgsError
 from ffcgs_jax.geometry.config import SDFConfig
@@ -129,6 +131,7 @@ def run_bench(cmd: BenchCmd) -> None:
 
     from ffcgs_jax.cli import benchmark
 
+    _outputs(("--results", cmd.results), ("--json", cmd.json))
     if cmd.backend == "cpu":  # before JAX starts a backend
         jax.config.update("jax_platforms", "cpu")
     elif cmd.backend == "gpu" and jax.default_backend() != "gpu":
@@ -156,6 +159,7 @@ def run_objects(cmd: ObjectsCmd) -> None:
 def run_sdf(cmd: SdfCmd) -> None:
     from ffcgs_jax.geometry import mesh_io, sdf
 
+    _outputs(("--out", cmd.out), ("--png", cmd.png))
     mesh = mesh_io.load_mesh(cmd.object, scale=cmd.sdf.scale)
     t0 = time.perf_counter()
     grid = sdf.build_sdf(mesh, cmd.sdf)
@@ -178,6 +182,7 @@ def run_hand(cmd: HandCmd) -> None:
 
     if not 0 <= cmd.close <= 1:
         raise FfcgsError(f"--close must be in [0, 1], got {cmd.close}")
+    _outputs(("--png", cmd.png))
     unknown = [v for v in cmd.views if v not in render.VIEWS]
     if unknown or not cmd.views:
         raise FfcgsError(f"--views: unknown view(s) {unknown}; valid: {', '.join(render.VIEWS)}")
@@ -264,6 +269,13 @@ def _protocols(name: str) -> tuple[str, ...]:
     return (name,)
 
 
+def _outputs(*named: tuple[str, str | None]) -> None:
+    """Check every output path of a command (its folder created) before any work, by `files.check_output`."""
+    for flag, path in named:
+        if path is not None:
+            files.check_output(path, flag)
+
+
 def _print_rows(rows: list[tuple[str, str]]) -> None:
     width = max(len(k) for k, _ in rows)
     for k, v in rows:
@@ -276,10 +288,12 @@ def run_grasp(cmd: GraspCmd) -> None:
     from ffcgs_jax.synthesis import grasp_io
     from ffcgs_jax.synthesis.grasp import summary_rows, synthesize
 
+    _outputs(("--out", cmd.out), ("--mcap", cmd.mcap), ("--png", cmd.png))
     hand = K.load_hand(cmd.hand)
     mesh = mesh_io.load_mesh(cmd.object, scale=cmd.grasp.sdf.scale)
     poses = None if cmd.poses is None else _read_poses(cmd.poses)
     gs = synthesize(hand, mesh, cmd.grasp, Path(cmd.object).stem, poses=poses)
+    gs.arrays.update(mesh_io.identity(cmd.object, cmd.grasp.sdf.scale, mesh))
     rows = summary_rows(gs)
     if cmd.validate:
         gs, physics_rows = _validate(gs, hand.spec, mesh, cmd)
@@ -332,7 +346,10 @@ class EvalCmd:
 
     Attributes:
         grasps: a grasps.npz from `ffcgs grasp` (wrist_pose, q). Per-grasp results are added to it (or `--out`).
-        object: the object the grasps are for: built-in name or mesh file; default the npz's object name.
+        object: the object to simulate: built-in name or mesh file; default the one the grasp file records (its
+            source, scale and content hash). Another object is refused unless `--other-object`.
+        other_object: simulate `--object` even though it is not the object the grasps were made for; the output
+            then records what was simulated (physics_object_source, _scale, _sha256).
         protocol: lift-shake, six-dir or both.
         out: write the npz with results here instead of updating `grasps`.
         video: also record one trial of the first protocol to this .gif or .mp4.
@@ -340,12 +357,14 @@ class EvalCmd:
         all: test every grasp, not only those marked valid by the synthesis.
         backend: cpu (MuJoCo, threads) or mjx (MuJoCo MJX on the JAX device).
         hand: built-in hand name or a hand-spec TOML.
-        scale: multiplies the object's coordinates (0.001 for millimetre meshes).
+        scale: multiplies the object's coordinates (0.001 for millimetre meshes); default the scale the grasp file
+            records (1 for files without one).
         physics: simulation and success-rule settings (flags without prefix: --friction, --mass, ...).
     """
 
     grasps: tyro.conf.Positional[str] = tyro.MISSING
     object: str | None = None
+    other_object: bool = False
     protocol: str = "both"
     out: str | None = None
     video: str | None = None
@@ -353,11 +372,13 @@ class EvalCmd:
     all: bool = False
     backend: str = "cpu"
     hand: str = "svh"
-    scale: float = 1.0
+    scale: float | None = None
     physics: PhysicsConfig = PhysicsConfig()
 
     def check(self) -> None:
         _protocols(self.protocol)
+        if self.scale is not None and not (math.isfinite(self.scale) and self.scale > 0):
+            raise FfcgsError(f"--scale must be a finite number > 0, got {self.scale}")
         if self.backend not in ("cpu", "mjx"):
             raise FfcgsError(f"unknown backend {self.backend!r}; backends: cpu, mjx")
         if self.video is not None and Path(self.video).suffix.lower() not in (".gif", ".mp4"):
@@ -374,14 +395,17 @@ def run_eval(cmd: EvalCmd) -> None:
     missing = [k for k in ("wrist_pose", "q") if k not in data]
     if missing:
         raise FfcgsError(f"{cmd.grasps} has no {' or '.join(missing)} array: is it a grasps.npz from ffcgs grasp?")
-    name = cmd.object
-    if name is None:
-        stored = str(data.get("object_name", ""))
-        if stored not in objects.names():
-            raise FfcgsError(f"{cmd.grasps} does not name a built-in object ({stored!r}): pass --object")
-        name = stored
+    out = cmd.out or cmd.grasps
+    _outputs(("--out", out), ("--video", cmd.video))
+    name, scale = _eval_object(cmd, data, objects.names())
     spec = hand_spec.load_spec(cmd.hand)
-    mesh = mesh_io.load_mesh(name, scale=cmd.scale)
+    mesh = mesh_io.load_mesh(name, scale=scale)
+    simulated = mesh_io.identity(name, scale, mesh)
+    recorded = str(data.get("object_sha256", ""))
+    if recorded and recorded != str(simulated["object_sha256"]) and not cmd.other_object:
+        raise FfcgsError(f"{name} (scale {scale:g}) is not the object these grasps were made for "
+                         f"({data['object_source']}, scale {float(data['object_scale']):g}); pass --other-object "
+                         "to simulate it anyway")
     protocols = _protocols(cmd.protocol)
     valid = np.asarray(data["valid"], bool) if "valid" in data else np.ones(len(data["q"]), bool)
     idx = np.arange(len(valid)) if cmd.all else np.flatnonzero(valid)
@@ -398,7 +422,7 @@ def run_eval(cmd: EvalCmd) -> None:
         data[k] = full
     data["physics_tested"] = np.isin(np.arange(n), idx)
     data["physics_config_json"] = np.array(json.dumps(dataclasses.asdict(cmd.physics)))
-    out = cmd.out or cmd.grasps
+    data.update({f"physics_{k}": v for k, v in simulated.items()})
     grasp_io.save_arrays(data, out)
     rows = physics_protocols.summary_rows(res, protocols)
     rows.append(("grasps tested", f"{len(idx)} ({'all' if cmd.all else 'valid'}) in {seconds:.1f} s, "
@@ -422,20 +446,26 @@ def run_eval(cmd: EvalCmd) -> None:
         print(f"wrote {cmd.video} (grasp {pick}, {protocols[0]}, {frames} frames)")
 
 
+def _eval_object(cmd: EvalCmd, data: dict, builtins: list[str]) -> tuple[str, float]:
+    """(object, scale) to simulate: `--object`/`--scale` where given, else what the grasp file records."""
+    stored_scale = float(data["object_scale"]) if "object_scale" in data else None
+    scale = cmd.scale if cmd.scale is not None else (stored_scale or 1.0)
+    if cmd.object is not None:
+        return cmd.object, scale
+    if "object_source" in data:
+        return str(data["object_source"]), scale
+    stored = str(data.get("object_name", ""))  # files from before object_source was recorded
+    if stored not in builtins:
+        raise FfcgsError(f"{cmd.grasps} does not name a built-in object ({stored!r}): pass --object")
+    return stored, scale
+
+
 def _read_poses(path: str) -> np.ndarray:
     p = Path(path)
-    if not p.is_file():
-        raise FfcgsError(f"pose file not found: {p}")
-    try:
-        data = np.load(p, allow_pickle=False)
-        if isinstance(data, np.lib.npyio.NpzFile):
-            if "wrist_pose" not in data.files:
-                raise FfcgsError(f"pose file {p} has no 'wrist_pose' array (has {', '.join(data.files)})")
-            data = data["wrist_pose"]
-    except FfcgsError:
-        raise
-    except Exception as e:  # noqa: BLE001 - any parse failure means an unreadable file
-        raise FfcgsError(f"pose file {p} is not a readable .npy/.npz: {type(e).__name__}: {e}") from None
+    arrays = files.read_npz(p, "pose file", ".npy/.npz pose file", npy=True)
+    if "" not in arrays and "wrist_pose" not in arrays:
+        raise FfcgsError(f"pose file {p} has no 'wrist_pose' array (has {', '.join(arrays) or 'none'})")
+    data = arrays.get("", arrays.get("wrist_pose"))
     from ffcgs_jax.hand.kinematics import check_wrist_poses
 
     return check_wrist_poses(data, f"wrist poses in {p}").reshape(-1, 4, 4)
@@ -468,6 +498,7 @@ class DatasetInfoCmd:
 def run_dataset_build(cfg: DatasetConfig) -> None:
     from ffcgs_jax.dataset import build as dataset_build
 
+    _outputs(("--out", cfg.out))
     r = dataset_build.build(cfg)
     done = f"{r['built']} objects built, {r['skipped']} already done, {r['seconds']:.0f} s (timing in {r['timing']})"
     if r.get("partial"):
@@ -482,10 +513,13 @@ def run_dataset_build(cfg: DatasetConfig) -> None:
 def run_dataset_info(cmd: DatasetInfoCmd) -> None:
     from ffcgs_jax.dataset import stats as dataset_stats
 
+    _outputs(("--json", cmd.json))
+    if cmd.png:
+        files.check_folder(cmd.png, "--png")
     stats = dataset_stats.stats(cmd.dataset)
     print(dataset_stats.format_stats(stats))
     if cmd.json:
-        Path(cmd.json).write_text(json.dumps(stats, indent=1))
+        files.write_text(cmd.json, json.dumps(stats, indent=1))
         print(f"wrote {cmd.json}")
     if cmd.png:
         written, skipped = dataset_stats.gallery(cmd.dataset, cmd.png, cmd.per_object, cmd.objects)

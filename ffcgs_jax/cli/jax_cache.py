@@ -8,6 +8,7 @@ On by default for the CLI. Where: $FFCGS_JAX_CACHE if set, else $XDG_CACHE_HOME/
 """
 
 import os
+import warnings
 from pathlib import Path
 
 import jax
@@ -31,8 +32,12 @@ def enable(path: str | Path | None = None) -> Path | None:
         return None
     try:
         path.mkdir(parents=True, exist_ok=True)
-    except OSError:
-        return None  # a read-only home must not stop the tool: it just compiles
+        if not os.access(path, os.W_OK | os.X_OK):
+            raise PermissionError("permission denied")
+    except OSError as e:  # an unusable folder must not stop the tool: it just compiles, and says so once
+        warnings.warn(f"compilation cache {path} cannot be used ({e.strerror or e}); compiling without it "
+                      "(set FFCGS_JAX_CACHE to a writable folder, or off)", stacklevel=2)
+        return None
     jax.config.update("jax_compilation_cache_dir", str(path))
     jax.config.update("jax_persistent_cache_min_compile_time_secs", 1.0)
     return path

@@ -4,9 +4,13 @@ Every subcommand takes `--config FILE.toml` (sections as in `configs/`) and then
 (`ffcgs sdf mug --res 64`). Bad input ends with one line on stderr and exit status 2, never a traceback.
 """
 
+import os
+import signal
 import sys
+import threading
 import warnings
 
+from ffcgs_jax import files
 from ffcgs_jax.cli.commands import COMMANDS
 from ffcgs_jax.config import with_overrides
 from ffcgs_jax.errors import FfcgsError
@@ -46,9 +50,28 @@ def _one_line_warning(message, category, filename, lineno, file=None, line=None)
     print(f"ffcgs: warning: {message}", file=sys.stderr if file is None else file)
 
 
+def _interrupted(signum, frame) -> None:
+    # Exit at once: a KeyboardInterrupt raised wherever Python happens to be can land in a garbage-collection
+    # callback (and be swallowed), or wait for a compilation to finish. Every file is written through
+    # `files.atomic_path`, so removing the temporary files of writes in progress leaves no partial output.
+    files.discard_temporaries()
+    os.write(2, b"\nffcgs: interrupted\n")  # a new line: a progress bar may be half-way through its own
+    os._exit(130)
+
+
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else argv
     warnings.showwarning = _one_line_warning  # a user needs the message, not our source line
+    previous = signal.signal(signal.SIGINT, _interrupted) if threading.current_thread() is threading.main_thread() \
+        else None
+    try:
+        return _run(argv)
+    finally:
+        if previous is not None:
+            signal.signal(signal.SIGINT, previous)
+
+
+def _run(argv: list[str]) -> int:
     try:
         fn, cmd = parse(argv)
         from ffcgs_jax.cli import jax_cache  # imports JAX: not before parsing, so --help stays quick
@@ -61,6 +84,10 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         print("ffcgs: interrupted", file=sys.stderr)
         return 130
+    except BrokenPipeError:  # `ffcgs grasp --help | head`: the reader left; say nothing more to it
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())
+        return 141
     return 0
 
 

@@ -34,6 +34,7 @@ from pathlib import Path
 import numpy as np
 import trimesh
 
+from ffcgs_jax import files
 from ffcgs_jax.dataset import mcap_io as dataset_io
 from ffcgs_jax.dataset import schema
 from ffcgs_jax.dataset.config import DatasetConfig
@@ -179,7 +180,7 @@ class Annotation:
         """Atomically, as an npz (no pickle): the grasp arrays and the counts as JSON. Seconds are not saved: the
         file must not depend on how fast the machine was."""
         arrays = dict(self.grasps) | {"counts_json": np.array(json.dumps(self.counts, sort_keys=True))}
-        dataset_io.atomic_write(path, lambda f: np.savez(f, **arrays))
+        files.atomic_write(path, lambda f: np.savez(f, **arrays))
 
     @classmethod
     def load(cls, path: Path) -> Annotation:
@@ -260,6 +261,11 @@ def build(cfg: DatasetConfig, show_progress: bool = True) -> dict:
 
     cfg.check()
     srcs = sources(cfg)
+    parts = dataset_io.parts_dir_for(cfg.out)
+    if not cfg.annotate and not dataset_io.done_records(parts) \
+            and not any(annotation_path(parts, s.name).is_file() for s in srcs):
+        raise FfcgsError(f"--no-annotate found no annotated object in {parts / 'annotations'}, so the dataset "
+                         "would be empty; copy the annotations there, or build without --no-annotate")
     hand, spec = K.load_hand(cfg.hand), hand_spec.load_spec(cfg.hand)
     extra = {"objects": [{"name": s.name, "split": s.split, "category": s.category, "mesh_sha256": s.sha256}
                          for s in srcs],

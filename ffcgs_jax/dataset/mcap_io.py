@@ -26,13 +26,12 @@ SDF through a bounded shuffle buffer; `summary(path)` counts. This module import
 from __future__ import annotations
 
 import json
-import os
 from collections.abc import Iterable, Iterator
 from pathlib import Path
 
 import numpy as np
 
-from ffcgs_jax import __version__
+from ffcgs_jax import __version__, files
 from ffcgs_jax.dataset.schema import (
     MESSAGE_ENCODINGS,
     PHYSICS_ARRAYS,
@@ -52,7 +51,6 @@ PART_SUFFIX = ".mcap"
 CONFIG_NAME = "config.json"
 
 
-
 def _new_writer(f, topics):
     from mcap.writer import Writer
 
@@ -65,7 +63,6 @@ def _new_writer(f, topics):
                                 data=json.dumps(schema, sort_keys=True).encode())
         ch[topic] = w.register_channel(topic=topic, message_encoding=MESSAGE_ENCODINGS[topic], schema_id=sid)
     return w, ch
-
 
 
 def _iter_messages(path: Path) -> Iterator[tuple[str, bytes]]:
@@ -98,7 +95,6 @@ def _iter_messages(path: Path) -> Iterator[tuple[str, bytes]]:
             yield topic, bytes(message.data)
 
 
-
 def _pairs(path: Path) -> Iterator[tuple[str, bytes, bytes | None]]:
     """Yield ('config', payload, None) and ('record', sdf_payload, grasps_payload) in file order."""
     pending = None
@@ -120,7 +116,6 @@ def _pairs(path: Path) -> Iterator[tuple[str, bytes, bytes | None]]:
         raise FfcgsError(f"{path}: last /sdf message has no /grasps message")
 
 
-
 def _decode_record(path: Path, sdf_data: bytes, grasp_data: bytes, index: int) -> Record:
     what = f"{path} record {index}"
     sm, sa = decode_arrays(sdf_data, what + " /sdf")
@@ -128,28 +123,10 @@ def _decode_record(path: Path, sdf_data: bytes, grasp_data: bytes, index: int) -
     return record_from(sm, sa, gm, ga, index, what)
 
 
-
 def parts_dir_for(out_path: str | Path) -> Path:
     """The conventional parts directory of an output file: `OUT.parts/` beside it."""
     out_path = Path(out_path)
     return out_path.with_name(out_path.name + ".parts")
-
-
-
-def atomic_write(path: Path, write) -> None:
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    try:
-        with open(tmp, "wb") as f:
-            write(f)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except OSError as e:
-        raise FfcgsError(f"cannot write {path}: {e}") from None
-    finally:
-        if tmp.exists():
-            tmp.unlink()
-
 
 
 def init_parts(parts_dir: str | Path, config: dict, extra: dict | None = None) -> Path:
@@ -173,9 +150,8 @@ def init_parts(parts_dir: str | Path, config: dict, extra: dict | None = None) -
         parts_dir.mkdir(parents=True, exist_ok=True)
     except OSError as e:
         raise FfcgsError(f"cannot create {parts_dir}: {e}") from None
-    atomic_write(cfg, lambda f: f.write(text.encode()))
+    files.atomic_write(cfg, lambda f: f.write(text.encode()))
     return parts_dir
-
 
 
 def _part_bytes(record: Record) -> bytes:
@@ -192,7 +168,6 @@ def _part_bytes(record: Record) -> bytes:
     return buf.getvalue()
 
 
-
 def _is_complete(path: Path) -> bool:
     try:
         size = path.stat().st_size
@@ -204,7 +179,6 @@ def _is_complete(path: Path) -> bool:
             return head == _MCAP_MAGIC and f.read() == _MCAP_MAGIC
     except OSError:
         return False
-
 
 
 def write_part(parts_dir: str | Path, record: Record) -> Path:
@@ -223,9 +197,8 @@ def write_part(parts_dir: str | Path, record: Record) -> Path:
         if path.read_bytes() == data:
             return path
         raise FfcgsError(f"record {record.record_id} already has a part {path} with different content")
-    atomic_write(path, lambda f: f.write(data))
+    files.atomic_write(path, lambda f: f.write(data))
     return path
-
 
 
 def done_records(parts_dir: str | Path) -> list[str]:
@@ -235,7 +208,6 @@ def done_records(parts_dir: str | Path) -> list[str]:
         return []
     return sorted(p.name[:-len(PART_SUFFIX)] for p in parts_dir.iterdir()
                   if p.name.endswith(PART_SUFFIX) and not p.name.startswith(".") and _is_complete(p))
-
 
 
 def merge(parts_dir: str | Path, out_path: str | Path, expected: Iterable[str] | None = None) -> Path:
@@ -277,9 +249,8 @@ def merge(parts_dir: str | Path, out_path: str | Path, expected: Iterable[str] |
             w.add_message(ch["/grasps"], log_time=i, publish_time=i, sequence=i, data=grasp_data)
         w.finish()
 
-    atomic_write(out_path, write)
+    files.atomic_write(out_path, write)
     return out_path
-
 
 
 class DatasetWriter:
@@ -308,7 +279,6 @@ class DatasetWriter:
         return merge(self.parts_dir, self.out_path, expected)
 
 
-
 def read_config(path: str | Path) -> dict:
     """The /config message of a dataset file: {"version", "config", "extra"}."""
     path = Path(path)
@@ -322,7 +292,6 @@ def read_config(path: str | Path) -> dict:
     raise FfcgsError(f"{path}: no /config message at the start of the file")
 
 
-
 def iter_records(path: str | Path) -> Iterator[Record]:
     """Stream the records of a merged dataset file (or a part), in file order, `index` = position."""
     path = Path(path)
@@ -331,7 +300,6 @@ def iter_records(path: str | Path) -> Iterator[Record]:
         if kind == "record":
             yield _decode_record(path, sdf_data, grasp_data, i)
             i += 1
-
 
 
 def _shuffle_stream(items: Iterable, buffer_size: int, rng: np.random.Generator) -> Iterator:
@@ -348,13 +316,11 @@ def _shuffle_stream(items: Iterable, buffer_size: int, rng: np.random.Generator)
         yield buf[j]
 
 
-
 def _grasp_items(path: Path, rng: np.random.Generator | None) -> Iterator[tuple[Record, int]]:
     """(record, grasp index) for every grasp, records in file order, grasps permuted by `rng` unless None."""
     for rec in iter_records(path):
         for g in range(rec.num_grasps) if rng is None else rng.permutation(rec.num_grasps):
             yield rec, int(g)
-
 
 
 def batches(path: str | Path, batch_size: int, seed: int, shuffle_buffer: int = 4096, epochs: int = 1,
@@ -397,7 +363,6 @@ def batches(path: str | Path, batch_size: int, seed: int, shuffle_buffer: int = 
             yield _stack(batch)
 
 
-
 def _stack(batch: list) -> dict[str, np.ndarray]:
     return {"sdf": np.stack([r.grid for r, _ in batch]),
             "origin": np.stack([r.origin for r, _ in batch]),
@@ -410,16 +375,13 @@ def _stack(batch: list) -> dict[str, np.ndarray]:
             "grasp": np.array([g for _, g in batch], dtype=np.int64)}
 
 
-
 _QUANTILES = {"min": 0.0, "q05": 0.05, "q25": 0.25, "median": 0.5, "q75": 0.75, "q95": 0.95, "max": 1.0}
-
 
 
 def quantiles(x) -> dict | None:
     """{min, q05, q25, median, q75, q95, max, mean} of a 1-D array, or None when it is empty."""
     x = np.asarray(x, np.float64)
     return ({k: float(np.quantile(x, v)) for k, v in _QUANTILES.items()} | {"mean": float(x.mean())}) if x.size else None
-
 
 
 def summary(path: str | Path) -> dict:

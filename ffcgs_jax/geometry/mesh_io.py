@@ -3,6 +3,7 @@
 Host only (NumPy and trimesh). Every problem with the caller's file raises `FfcgsError` naming the file.
 """
 
+import hashlib
 import pathlib
 import warnings
 
@@ -14,6 +15,7 @@ from ffcgs_jax.geometry import objects
 
 FORMATS = ("obj", "stl", "ply", "off", "glb", "gltf")  # mesh formats trimesh reads that we accept
 MM_EXTENT = 2.0  # metres: a larger object is most likely in millimetres
+TINY_EXTENT = 0.005  # metres: a smaller object is most likely scaled wrongly (no SVH fingertip grasps a 5 mm object)
 _FLAT = 1e-6  # a mesh thinner than this fraction of its size in some direction has no volume
 
 
@@ -76,6 +78,12 @@ def load_mesh(source: str | pathlib.Path, scale: float = 1.0) -> trimesh.Trimesh
             "(load_mesh(..., scale=0.001)) to load it in metres",
             stacklevel=2,
         )
+    if size < TINY_EXTENT:
+        warnings.warn(
+            f"mesh {name} is {size * 1000:.3g} mm across, which looks like a wrong scale (scale {scale:g} was "
+            f"applied); a mesh in metres needs --scale 1, one in millimetres --scale 0.001",
+            stacklevel=2,
+        )
     return mesh
 
 
@@ -106,3 +114,20 @@ def _read(path: pathlib.Path) -> trimesh.Trimesh:
     if not isinstance(loaded, trimesh.Trimesh):
         raise FfcgsError(f"mesh file {path} is not a triangle mesh but a {type(loaded).__name__} (no faces)")
     return loaded
+
+
+def mesh_sha256(mesh: trimesh.Trimesh) -> str:
+    """A content hash of the mesh as loaded (scaled vertices and faces): two files give the same hash exactly when
+    they load to the same geometry."""
+    h = hashlib.sha256()
+    h.update(np.ascontiguousarray(mesh.vertices, np.float64).tobytes())
+    h.update(np.ascontiguousarray(mesh.faces, np.int64).tobytes())
+    return h.hexdigest()
+
+
+def identity(source: str | pathlib.Path, scale: float, mesh: trimesh.Trimesh) -> dict[str, np.ndarray]:
+    """What a result was computed on, as npz arrays: `object_source` (a built-in name or the mesh file's absolute
+    path), `object_scale` and `object_sha256` (`mesh_sha256`)."""
+    src = str(source) if str(source) in objects.names() else str(pathlib.Path(source).expanduser().resolve())
+    return {"object_source": np.array(src), "object_scale": np.float64(scale),
+            "object_sha256": np.array(mesh_sha256(mesh))}

@@ -20,6 +20,7 @@ import numpy as np
 import trimesh
 from jax.custom_derivatives import SymbolicZero
 
+from ffcgs_jax import files
 from ffcgs_jax.errors import FfcgsError
 from ffcgs_jax.geometry.config import SDFConfig
 from ffcgs_jax.geometry.sdf_build import signed_distance_grid
@@ -137,7 +138,8 @@ def object_extent(sdf: GradientSDF) -> ObjectExtent:
     if not inside.any():
         inside = grid <= 0.5 * h
     if not inside.any():
-        raise FfcgsError("the SDF has no voxel inside or on the object; is it empty?")
+        raise FfcgsError(f"the SDF has no voxel inside or on the object (voxels of {h * 1000:.3g} mm): is the object "
+                         "empty, or smaller than a voxel because of a wrong --scale?")
     p = np.asarray(sdf.origin) + h * np.argwhere(inside)
     centre = p.mean(0)
     radius = float(np.linalg.norm(p - centre, axis=1).max() + 0.5 * np.sqrt(3) * h)
@@ -310,25 +312,16 @@ def query_scene(sdf: GradientSDF, points: Float[Array, "P 3"]) -> tuple[Float[Ar
 
 def save(sdf: GradientSDF, path: str | pathlib.Path) -> None:
     """Write the grid to an .npz file (no pickles)."""
-    path = pathlib.Path(path)
     arrays = {k: np.asarray(v) for k, v in sdf._asdict().items() if k != "cells"}  # derived, rebuilt on demand
-    try:
-        with open(path, "wb") as f:  # a file handle, so numpy does not append .npz to the name
-            np.savez_compressed(f, version=np.int64(_FORMAT_VERSION), **arrays)
-    except OSError as e:
-        raise FfcgsError(f"cannot write SDF file {path}: {e}") from None
+    # a file handle, so numpy does not append .npz to the name; atomic, so a failed write keeps the old file
+    files.atomic_write(files.check_output(path, "SDF file"),
+                       lambda f: np.savez_compressed(f, version=np.int64(_FORMAT_VERSION), **arrays))
 
 
 def load(path: str | pathlib.Path) -> GradientSDF:
     """Read a grid written by `save`, checking keys, shapes and finite values."""
     path = pathlib.Path(path)
-    if not path.is_file():
-        raise FfcgsError(f"SDF file not found: {path}")
-    try:
-        with np.load(path, allow_pickle=False) as z:
-            data = {k: z[k] for k in z.files}
-    except Exception as e:  # noqa: BLE001 - any failure to parse means a broken file
-        raise FfcgsError(f"SDF file {path} is not a readable .npz: {type(e).__name__}: {e}") from None
+    data = files.read_npz(path, "SDF file", ".npz")
     need = ("version", "grid", "origin", "voxel_size", "table_z")
     missing = [k for k in need if k not in data]
     if missing:

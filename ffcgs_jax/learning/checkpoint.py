@@ -6,11 +6,11 @@ then rename), so an interrupted save leaves the previous checkpoint intact.
 """
 
 import json
-import os
 from pathlib import Path
 
 import numpy as np
 
+from ffcgs_jax import files
 from ffcgs_jax.errors import FfcgsError
 
 _META = "__meta__"
@@ -42,29 +42,15 @@ def unflatten(flat: dict[str, np.ndarray]) -> dict:
 
 def save(path: str | Path, tree: dict, meta: dict | None = None) -> Path:
     """Write `tree` (nested dicts of arrays) and `meta` (JSON-serialisable) to `path` atomically."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
     flat = flatten(tree)
     flat[_META] = np.frombuffer(json.dumps(meta or {}, sort_keys=True).encode(), np.uint8)
-    tmp = path.with_name(path.name + ".tmp")
-    with open(tmp, "wb") as f:
-        np.savez(f, **flat)
-        f.flush()
-        os.fsync(f.fileno())
-    os.replace(tmp, path)
-    return path
+    return files.atomic_write(files.check_output(path, "checkpoint"), lambda f: np.savez(f, **flat))
 
 
 def load(path: str | Path) -> tuple[dict, dict]:
     """(tree, meta) from a file written by `save`."""
     path = Path(path)
-    if not path.is_file():
-        raise FfcgsError(f"checkpoint file not found: {path}")
-    try:
-        with np.load(path, allow_pickle=False) as z:
-            flat = {k: z[k] for k in z.files}
-    except (ValueError, OSError, EOFError) as e:
-        raise FfcgsError(f"{path} is not a readable .npz checkpoint: {e}") from None
+    flat = files.read_npz(path, "checkpoint file", ".npz checkpoint")
     if _META not in flat:
         raise FfcgsError(f"{path} is not an ffcgs checkpoint (no {_META} entry)")
     meta = json.loads(flat.pop(_META).tobytes().decode())

@@ -24,7 +24,7 @@ import jax.numpy as jnp
 import numpy as np
 from tqdm import tqdm
 
-from ffcgs_jax import __version__
+from ffcgs_jax import __version__, files
 from ffcgs_jax.errors import FfcgsError
 from ffcgs_jax.hand import kinematics as K
 from ffcgs_jax.hand import sites
@@ -154,7 +154,7 @@ def train(cfg: TrainConfig, hand: str = "svh", progress: bool = True, until_epoc
     if ckpt_path.is_file() and cfg_path.is_file() and cfg_path.read_text() != text:
         raise FfcgsError(f"{out} holds a run with a different config ({cfg_path}); resume it with --config "
                          f"{cfg_path} or choose another --out")
-    cfg_path.write_text(text)
+    files.write_text(cfg_path, text)
 
     if data is None:
         data = cvae_data.load(cfg.data.path, cfg.data.noisy)
@@ -237,7 +237,7 @@ def train(cfg: TrainConfig, hand: str = "svh", progress: bool = True, until_epoc
     }
     checkpoint.save(out / "weights.npz", {"params": params},
                     _weights_meta(cfg, hand_name, {k: summary[k] for k in ("train_rec", "val_rec", "steps")}))
-    (out / "summary.json").write_text(json.dumps(summary, indent=1))
+    files.write_text(out / "summary.json", json.dumps(summary, indent=1))
     plot_metrics(log_path, out / "metrics.png")
     return summary
 
@@ -247,7 +247,7 @@ def _truncate_log(path: Path, step: int) -> None:
     if not path.exists():
         return
     keep = [line for line in path.read_text().splitlines() if line and json.loads(line)["step"] <= step]
-    path.write_text("".join(line + "\n" for line in keep))
+    files.write_text(path, "".join(line + "\n" for line in keep))
 
 
 def read_metrics(path: str | Path) -> tuple[list[dict], list[dict]]:
@@ -283,6 +283,7 @@ def plot_metrics(log_path: Path, png: Path) -> Path | None:
     ax[2].plot(s, [r["beta"] for r in steps])
     ax[2].set(xlabel="step", title="beta_t")
     fig.tight_layout()
-    fig.savefig(png, dpi=90)
+    with files.atomic_path(png) as tmp:
+        fig.savefig(tmp, dpi=90)
     plt.close(fig)
     return png

@@ -14,11 +14,13 @@ few-thousand-face mesh, so it is cached as an .npz named by a SHA-256 of both, i
 import hashlib
 import json
 import os
+import warnings
 from pathlib import Path
 
 import numpy as np
 import trimesh
 
+from ffcgs_jax import files
 from ffcgs_jax.errors import FfcgsError
 from ffcgs_jax.physics.config import PhysicsConfig
 
@@ -51,7 +53,10 @@ def decompose(mesh: trimesh.Trimesh, cfg: PhysicsConfig = PhysicsConfig(), use_c
             pass
     parts = _compute(mesh, cfg)
     if use_cache:
-        _write(path, parts)
+        try:
+            _write(path, parts)
+        except FfcgsError as e:  # an unusable cache folder costs time on the next run, not this result
+            warnings.warn(f"convex parts not cached ({e}); set FFCGS_CACHE_DIR to a writable folder", stacklevel=2)
     return parts
 
 
@@ -91,13 +96,11 @@ def _simplified_hull(hull: trimesh.Trimesh, k: int) -> tuple[np.ndarray, np.ndar
 
 
 def _write(path: Path, parts) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
     arrays = {}
     for i, (v, f) in enumerate(parts):
         arrays[f"v{i}"], arrays[f"f{i}"] = v, f
-    tmp = path.with_name(path.stem + f".{os.getpid()}.tmp.npz")
-    np.savez(tmp, n=len(parts), **arrays)
-    os.replace(tmp, path)  # atomic, so parallel workers never read half a file
+    # atomic, so parallel workers never read half a file
+    files.atomic_write(files.check_output(path, "convex cache"), lambda f: np.savez(f, n=len(parts), **arrays))
 
 
 def _read(path: Path) -> list[tuple[np.ndarray, np.ndarray]]:

@@ -25,6 +25,7 @@ import mujoco
 import numpy as np
 from PIL import Image, ImageDraw, ImageFont
 
+from ffcgs_jax import files
 from ffcgs_jax.errors import FfcgsError
 from ffcgs_jax.physics import backend as physics_backend
 from ffcgs_jax.physics import protocols as physics_protocols
@@ -75,7 +76,8 @@ def record(scene: PhysicsScene, batch: physics_backend.Batch, index: int, cfg: P
         batch, index: the grasps and which one to film.
         cfg: the physics settings the batch was prepared with.
         protocol: "lift-shake" or "six-dir".
-        path: the video file: `.gif` or `.mp4` (needs `pip install imageio-ffmpeg`); its folder is created.
+        path: the video file: `.gif` or `.mp4` (needs `pip install imageio-ffmpeg`); its folder is created, and it
+            is written atomically (an interrupted recording leaves no partial file).
         fps: frames per simulated second (the video plays in real time); default 15 for GIF, 30 for MP4.
         width, height: frame size in pixels; default 320 x 240 for GIF, 480 x 360 for MP4 (MP4 rounds odd sizes
             up to even ones, as H.264 in yuv420p needs).
@@ -130,6 +132,15 @@ def record(scene: PhysicsScene, batch: physics_backend.Batch, index: int, cfg: P
     font = _font(height)
     title = f"{protocol}  grasp {index}" if title is None else title
     tick = progress or (lambda n: None)
+    path = files.check_output(path, "video")
+    with files.atomic_path(path) as tmp:
+        return _write(tmp, suffix, fps, width, height, m, d, cameras, backend, reach, plan, limit, pos, quat, cfg,
+                      scene, title, font, tick, imageio_ffmpeg if suffix == ".mp4" else None)
+
+
+def _write(path, suffix, fps, width, height, m, d, cameras, backend, reach, plan, limit, pos, quat, cfg, scene,
+           title, font, tick, imageio_ffmpeg) -> int:
+    """Render `plan` into the video file `path` (a temporary name: `record` moves it in place); frames written."""
     writer = _GifWriter(path, fps) if suffix == ".gif" else _Mp4Writer(imageio_ffmpeg, path, fps, width, height)
     frames = 0
     try:
@@ -249,7 +260,6 @@ class _GifWriter:
         ends = [round(100 * (k + 1) / self.fps) for k in range(len(self.frames))]
         durations = [10 * max(1, e - s) for s, e in zip([0] + ends[:-1], ends, strict=True)]
         try:
-            self.path.parent.mkdir(parents=True, exist_ok=True)
             self.frames[0].save(self.path, format="GIF", save_all=True, append_images=self.frames[1:],
                                 duration=durations, loop=0, optimize=False, disposal=1)
         except OSError as e:
@@ -263,10 +273,6 @@ class _Mp4Writer:
     """H.264 frames streamed to ffmpeg as they come."""
 
     def __init__(self, imageio_ffmpeg, path: Path, fps: float, width: int, height: int):
-        try:
-            path.parent.mkdir(parents=True, exist_ok=True)
-        except OSError as e:
-            raise FfcgsError(f"cannot write MP4 {path}: {e.strerror or e}") from None
         self.path = path
         self.gen = imageio_ffmpeg.write_frames(str(path), (width, height), fps=fps, codec="libx264",
                                                pix_fmt_out="yuv420p", macro_block_size=2, quality=7)

@@ -25,7 +25,7 @@ from ffcgs_jax.geometry import sdf as sdf_mod
 from ffcgs_jax.hand import kinematics as K
 from ffcgs_jax.hand.kinematics import Hand
 from ffcgs_jax.synthesis import filters as F
-from ffcgs_jax.synthesis import samplers, sharding
+from ffcgs_jax.synthesis import memory, samplers, sharding
 from ffcgs_jax.synthesis.config import EnergyConfig, GraspConfig, OptimConfig
 from ffcgs_jax.synthesis.energy import Target, make_target
 from ffcgs_jax.synthesis.optimize import OptResult, _optimize
@@ -174,6 +174,7 @@ def compile_device(hand: Hand, target: Target, cfg: GraspConfig, given: jax.Arra
     key0 = jax.random.PRNGKey(0)
     t0 = time.perf_counter()
     compiled = _compiled(hand, target, key0, given, dcfg, n, given_q, params, res, mesh)
+    memory.check_fits(compiled, n, mesh.devices.flat[0])  # before anything is allocated: no out-of-memory traceback
     return (lambda key: compiled(hand, target, key, given, given_q=given_q, sampler_params=params)), \
         time.perf_counter() - t0
 

@@ -17,8 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ffcgs_jax import __version__
-from ffcgs_jax.errors import FfcgsError
+from ffcgs_jax import __version__, files
 
 NUMBERS = {"type": "array", "items": {"type": "number"}}
 SCHEMAS = {
@@ -47,59 +46,46 @@ def save_npz(gs, path: str | Path) -> None:
 
 
 def save_arrays(arrays: dict[str, np.ndarray], path: str | Path) -> None:
-    """Write named arrays to a compressed .npz file (no pickles), or FfcgsError naming the path."""
-    path = Path(path)
-    try:
-        with open(path, "wb") as f:
-            np.savez_compressed(f, **arrays)
-    except OSError as e:
-        raise FfcgsError(f"cannot write {path}: {e}") from None
+    """Write named arrays to a compressed .npz file (no pickles), atomically: a failed write leaves an existing
+    file as it was. FfcgsError naming the path."""
+    files.atomic_write(files.check_output(path, "grasp file"), lambda f: np.savez_compressed(f, **arrays))
 
 
 def load_npz(path: str | Path) -> dict[str, np.ndarray]:
-    path = Path(path)
-    if not path.is_file():
-        raise FfcgsError(f"grasp file not found: {path}")
-    try:
-        with np.load(path, allow_pickle=False) as z:
-            return {k: z[k] for k in z.files}
-    except Exception as e:  # noqa: BLE001 - any parse failure means the file is not ours
-        raise FfcgsError(f"{path} is not a readable grasp .npz: {type(e).__name__}: {e}") from None
+    return files.read_npz(path, "grasp file", "grasp .npz")
 
 
 def write_mcap(gs, path: str | Path, hand_name: str, summary: list[tuple[str, str]]) -> None:
     """Write the run log (config, per-iteration energies of every pose, final grasps, summary) as MCAP."""
+    files.atomic_write(files.check_output(path, "MCAP log"), lambda f: _write_log(f, gs, hand_name, summary))
+
+
+def _write_log(f, gs, hand_name: str, summary: list[tuple[str, str]]) -> None:
     from mcap.writer import Writer
 
-    path = Path(path)
-    try:
-        f = open(path, "wb")
-    except OSError as e:
-        raise FfcgsError(f"cannot write {path}: {e}") from None
-    with f:
-        w = Writer(f)
-        w.start(profile="", library=f"ffcgs-jax {__version__}")
-        ch = {}
-        for topic, schema in SCHEMAS.items():
-            sid = w.register_schema(name=schema["title"], encoding="jsonschema",
-                                    data=json.dumps(schema).encode())
-            ch[topic] = w.register_channel(topic=topic, message_encoding="json", schema_id=sid)
-        t = time.time_ns()
+    w = Writer(f)
+    w.start(profile="", library=f"ffcgs-jax {__version__}")
+    ch = {}
+    for topic, schema in SCHEMAS.items():
+        sid = w.register_schema(name=schema["title"], encoding="jsonschema",
+                                data=json.dumps(schema).encode())
+        ch[topic] = w.register_channel(topic=topic, message_encoding="json", schema_id=sid)
+    t = time.time_ns()
 
-        def put(topic, msg, i):
-            w.add_message(ch[topic], log_time=t + i, publish_time=t + i, sequence=i, data=json.dumps(msg).encode())
+    def put(topic, msg, i):
+        w.add_message(ch[topic], log_time=t + i, publish_time=t + i, sequence=i, data=json.dumps(msg).encode())
 
-        put("/config", {"object": gs.object_name, "hand": hand_name, "version": __version__,
-                        "config": dataclasses.asdict(gs.config)}, 0)
-        for it in range(gs.trace["E"].shape[0]):
-            put("/iteration", {"iteration": it, **{k: gs.trace[k][it].tolist() for k in ("E", "E_g", "E_c")}}, it)
-        a = gs.arrays
-        for i in range(len(a["valid"])):
-            put("/grasp", {"index": i, "valid": bool(a["valid"][i]), "wrist_pose": a["wrist_pose"][i].tolist(),
-                           "q": a["q"][i].tolist(), "contacts": a["contacts"][i].tolist(),
-                           **{k: float(a[k][i]) for k in ("E", "E_g", "E_c", "E_q", "epsilon", "penetration")}}, i)
-        put("/summary", dict(summary), 0)
-        w.finish()
+    put("/config", {"object": gs.object_name, "hand": hand_name, "version": __version__,
+                    "config": dataclasses.asdict(gs.config)}, 0)
+    for it in range(gs.trace["E"].shape[0]):
+        put("/iteration", {"iteration": it, **{k: gs.trace[k][it].tolist() for k in ("E", "E_g", "E_c")}}, it)
+    a = gs.arrays
+    for i in range(len(a["valid"])):
+        put("/grasp", {"index": i, "valid": bool(a["valid"][i]), "wrist_pose": a["wrist_pose"][i].tolist(),
+                       "q": a["q"][i].tolist(), "contacts": a["contacts"][i].tolist(),
+                       **{k: float(a[k][i]) for k in ("E", "E_g", "E_c", "E_q", "epsilon", "penetration")}}, i)
+    put("/summary", dict(summary), 0)
+    w.finish()
 
 
 def read_mcap(path: str | Path) -> dict[str, list[dict]]:

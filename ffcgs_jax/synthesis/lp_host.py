@@ -22,6 +22,7 @@ The callback never raises: every instance returns a status, and a failed or inac
 
 import functools
 import os
+import warnings
 
 import jax
 import jax.numpy as jnp
@@ -43,6 +44,8 @@ def _threads() -> int:
     env = os.environ.get("FFCGS_LP_THREADS")
     if env and env.isdigit() and int(env) > 0:
         return int(env)
+    if env:
+        warnings.warn(f"FFCGS_LP_THREADS={env!r} is not a positive integer; using every core", stacklevel=2)
     return max(1, len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1))
 
 

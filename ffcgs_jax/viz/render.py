@@ -35,6 +35,7 @@ import numpy as np
 from jaxtyping import Float, Int, UInt8
 from PIL import Image, ImageDraw
 
+from ffcgs_jax import files
 from ffcgs_jax.errors import FfcgsError
 from ffcgs_jax.viz.render_software import AMBIENT, FILL_LIGHT, HEADLIGHT, Camera, background, draw, fill_light_direction
 
@@ -193,12 +194,8 @@ def save_png(image: UInt8[np.ndarray, "height width 3"], path: str | Path) -> No
     image = np.asarray(image)
     if image.ndim != 3 or image.shape[2] != 3 or image.dtype != np.uint8:
         raise FfcgsError(f"save_png needs a (height, width, 3) uint8 image, got {image.shape} {image.dtype}")
-    path = Path(path)
-    try:
-        path.parent.mkdir(parents=True, exist_ok=True)
-        Image.fromarray(np.ascontiguousarray(image)).save(path, format="PNG")
-    except OSError as e:
-        raise FfcgsError(f"cannot write PNG {path}: {e.strerror or e}") from None
+    path = files.check_output(path, "PNG")
+    files.atomic_write(path, lambda f: Image.fromarray(np.ascontiguousarray(image)).save(f, format="PNG"))
 
 
 def geom_meshes(

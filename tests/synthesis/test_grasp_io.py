@@ -70,9 +70,13 @@ def test_load_npz_missing_or_garbage(tmp_path):
         grasp_io.load_npz(junk)
 
 
-def test_save_npz_to_a_missing_directory(gs, tmp_path):
+def test_save_npz_creates_its_folder_and_refuses_a_path_under_a_file(gs, tmp_path):
+    """One rule for every output (issue 23): a missing folder is created; a path that cannot be a file is refused."""
+    grasp_io.save_npz(gs, tmp_path / "no" / "such" / "dir.npz")
+    assert grasp_io.load_npz(tmp_path / "no" / "such" / "dir.npz")["q"].shape == gs["q"].shape
+    (tmp_path / "plain").write_text("a file")
     with pytest.raises(FfcgsError, match="cannot write"):
-        grasp_io.save_npz(gs, tmp_path / "no" / "such" / "dir.npz")
+        grasp_io.save_npz(gs, tmp_path / "plain" / "dir.npz")
 
 
 # ---------------------------------------------------------------------------------------------------------------
@@ -133,5 +137,7 @@ def test_schema_checker_can_fail():
 
 
 def test_mcap_unwritable_path(gs, tmp_path):
+    (tmp_path / "plain").write_text("a file")
     with pytest.raises(FfcgsError, match="cannot write"):
-        grasp_io.write_mcap(gs, tmp_path / "missing" / "run.mcap", "svh", SUMMARY)
+        grasp_io.write_mcap(gs, tmp_path / "plain" / "run.mcap", "svh", SUMMARY)
+    assert list(tmp_path.iterdir()) == [tmp_path / "plain"]
