@@ -1,7 +1,11 @@
-"""Benchmark the physics test: CPU MuJoCo (`mujoco.rollout` threads) against MJX, one protocol, n grasps.
+"""Benchmark the physics test: CPU MuJoCo (`mujoco.rollout` threads) against MJX and MuJoCo Warp, n grasps.
 
     python bench/bench_physics.py [--object ball] [--n 1024] [--backend both] [--protocol six-dir] [--repeats 3]
                                   [--grasps FILE.npz] [--workers 0] [--short]
+    python bench/bench_physics.py --object mug --backend warp --protocol both --n 64 512 4096
+
+`--backend` is cpu, mjx, warp, both (cpu and mjx) or a comma list; `--protocol both` times the two protocols as
+one evaluation (what `ffcgs eval` runs), several `--n` give a row each.
 
 Grasps: `--grasps` (an npz with wrist_pose (B, 4, 4) and q (B, Q), e.g. from `ffcgs grasp`), else a quick
 synthesis of 8 (the valid ones when there are any), tiled to n. Prints a Markdown table per backend: first run
@@ -41,8 +45,7 @@ def load_grasps(args, mesh) -> tuple[np.ndarray, np.ndarray]:
         gs = grasp.synthesize(K.load_hand("svh"), mesh, GraspConfig(n=8), args.object)
         keep = np.flatnonzero(gs["valid"]) if gs["valid"].any() else np.arange(len(gs["valid"]))
         T, q = gs["wrist_pose"][keep], gs["q"][keep]
-    idx = np.arange(args.n) % len(q)
-    return T[idx], q[idx]
+    return T, q
 
 
 def steps_per_grasp(batch, cfg: PhysicsConfig, protocol: str) -> int:
@@ -54,12 +57,26 @@ def steps_per_grasp(batch, cfg: PhysicsConfig, protocol: str) -> int:
     return sum(s.n for s in segs)
 
 
+def make_sim(backend: str, scene, cfg: PhysicsConfig, n: int):
+    if backend == "cpu":
+        return backend_cpu.CpuSim(scene, cfg.workers)
+    if backend == "mjx":
+        from ffcgs_jax.physics.backend_mjx import MjxSim
+
+        return MjxSim(scene)
+    if backend == "warp":
+        from ffcgs_jax.physics.backend_warp import WarpSim
+
+        return WarpSim(scene, n)
+    raise SystemExit(f"unknown backend {backend!r}: cpu, mjx, warp")
+
+
 def main():
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--object", default="ball", help="built-in object name or mesh path")
-    ap.add_argument("--n", type=int, default=1024, help="grasps per batch")
-    ap.add_argument("--backend", choices=("cpu", "mjx", "both"), default="both")
-    ap.add_argument("--protocol", choices=PROTOCOLS, default="six-dir")
+    ap.add_argument("--n", type=int, nargs="+", default=[1024], help="grasps per batch (several: a row each)")
+    ap.add_argument("--backend", default="both", help="cpu, mjx, warp, both (= cpu,mjx) or a comma list")
+    ap.add_argument("--protocol", choices=(*PROTOCOLS, "both"), default="six-dir")
     ap.add_argument("--repeats", type=int, default=3, help="warm runs after the first")
     ap.add_argument("--grasps", help="npz with wrist_pose and q (else a quick synthesis of 8, tiled)")
     ap.add_argument("--workers", type=int, default=0, help="CPU threads (0: all cores)")
@@ -67,33 +84,37 @@ def main():
     args = ap.parse_args()
     cfg = PhysicsConfig(workers=args.workers, **(SHORT if args.short else {}))
     spec, mesh = hand_spec.load_spec("svh"), mesh_io.load_mesh(args.object)
-    wrist_pose, q = load_grasps(args, mesh)
-    scene = physics.scenes(spec, mesh, cfg, (args.protocol,))[args.protocol]
-    batch, depth, _ = physics.prepare(scene, mesh, wrist_pose, q, cfg)
-    steps = steps_per_grasp(batch, cfg, args.protocol)
+    wrist_all, q_all = load_grasps(args, mesh)
+    protocols = PROTOCOLS if args.protocol == "both" else (args.protocol,)
+    backends = ("cpu", "mjx") if args.backend == "both" else tuple(args.backend.split(","))
     rows = []
-    for backend in ("cpu", "mjx") if args.backend == "both" else (args.backend,):
-        t0 = time.perf_counter()
-        if backend == "cpu":
-            sim = backend_cpu.CpuSim(scene, cfg.workers)
-        else:
-            from ffcgs_jax.physics.backend_mjx import MjxSim
-
-            sim = MjxSim(scene)
-        res = physics_protocols.run_protocol(sim, batch, depth, cfg, args.protocol)
-        first = time.perf_counter() - t0
-        times = []
-        for _ in range(args.repeats):
-            t0 = time.perf_counter()
-            physics_protocols.run_protocol(sim, batch, depth, cfg, args.protocol)
-            times.append(time.perf_counter() - t0)
-        warm = statistics.median(times) if times else first
-        rows.append((backend, args.n, first, warm, args.n / warm, args.n * steps / warm, res["success"].mean()))
+    for n in args.n:
+        idx = np.arange(n) % len(q_all)
+        wrist_pose, q = wrist_all[idx], q_all[idx]
+        scenes = physics.scenes(spec, mesh, cfg, protocols)
+        batch, depth, _ = physics.prepare(scenes[protocols[0]], mesh, wrist_pose, q, cfg)
+        steps = sum(steps_per_grasp(batch, cfg, p) for p in protocols)
+        for backend in backends:
+            sims, t0 = {}, time.perf_counter()
+            for p in protocols:
+                sims[p] = make_sim(backend, scenes[p], cfg, n)
+            results = {p: physics_protocols.run_protocol(sims[p], batch, depth, cfg, p) for p in protocols}
+            first = time.perf_counter() - t0
+            times = []
+            for _ in range(args.repeats):
+                t0 = time.perf_counter()
+                for p in protocols:
+                    physics_protocols.run_protocol(sims[p], batch, depth, cfg, p)
+                times.append(time.perf_counter() - t0)
+            warm = statistics.median(times) if times else first
+            ok = np.logical_and.reduce([results[p]["success"] for p in protocols]).mean()
+            rows.append((backend, n, first, warm, n / warm, n * steps / warm, ok))
+            print(f"{backend} n={n}: first {first:.1f} s, warm {warm:.2f} s", flush=True)
     dev = jax.devices()[0]
     workers = cfg.workers or os.cpu_count()
     print(f"device: {dev.platform} ({dev.device_kind}), jax {jax.__version__}, {platform.machine()}, "
           f"{workers} CPU threads; object {args.object}, protocol {args.protocol}{' (short)' if args.short else ''}, "
-          f"{steps} steps per grasp, cone {cfg.cone}, {args.repeats} warm repeats")
+          f"{steps} steps per grasp, cone {cfg.cone}, {args.repeats} warm repeats; success = every protocol passed")
     print()
     print("| backend | n | first run (s) | warm median (s) | grasps/s | grasp-steps/s | success |")
     print("|---|---|---|---|---|---|---|")

@@ -355,7 +355,8 @@ class EvalCmd:
         video: also record one trial of the first protocol to this .gif or .mp4.
         video_index: which grasp the video shows; default the first valid grasp that passed (else the first).
         all: test every grasp, not only those marked valid by the synthesis.
-        backend: cpu (MuJoCo, threads) or mjx (MuJoCo MJX on the JAX device).
+        backend: cpu (MuJoCo, threads), mjx (MuJoCo MJX on the JAX device) or warp (MuJoCo Warp: grasps as worlds on
+            a CUDA GPU; `pip install -e ".[warp]"`).
         hand: built-in hand name or a hand-spec TOML.
         scale: multiplies the object's coordinates (0.001 for millimetre meshes); default the scale the grasp file
             records (1 for files without one).
@@ -379,8 +380,8 @@ class EvalCmd:
         _protocols(self.protocol)
         if self.scale is not None and not (math.isfinite(self.scale) and self.scale > 0):
             raise FfcgsError(f"--scale must be a finite number > 0, got {self.scale}")
-        if self.backend not in ("cpu", "mjx"):
-            raise FfcgsError(f"unknown backend {self.backend!r}; backends: cpu, mjx")
+        if self.backend not in ("cpu", "mjx", "warp"):
+            raise FfcgsError(f"unknown backend {self.backend!r}; backends: cpu, mjx, warp")
         if self.video is not None and Path(self.video).suffix.lower() not in (".gif", ".mp4"):
             raise FfcgsError(f"--video must end in .gif or .mp4, got {self.video}")
 

@@ -45,7 +45,7 @@ from ffcgs_jax.physics.config import PROTOCOLS, PhysicsConfig
 from ffcgs_jax.physics.protocols import result_key, run_protocol
 from ffcgs_jax.physics.scene import PhysicsScene
 
-BACKENDS = ("cpu", "mjx")
+BACKENDS = ("cpu", "mjx", "warp")
 
 
 def scenes(spec: HandSpec, mesh: trimesh.Trimesh, cfg: PhysicsConfig, protocols, table_z: float | None = None
@@ -132,7 +132,8 @@ def evaluate(spec: HandSpec, mesh: trimesh.Trimesh, wrist_pose, q, cfg: PhysicsC
     """Run the physics test on grasps (wrist_pose (B, 4, 4) object frame, q (B, Q) channels).
 
     CPU runs the grasps in groups of `GROUP_PER_THREAD` x threads, so `progress(k)` (k grasps done) ticks often;
-    MJX runs them as one batch. Returns flat per-grasp arrays for an npz: initial_penetration, palm_contact and,
+    MJX runs them as one batch, warp in batches of up to `backend_warp.MAX_WORLDS` worlds; grasps whose warp
+    contacts or constraints overflowed their buffers are run again on the CPU (`physics_rerun_cpu` marks them). Returns flat per-grasp arrays for an npz: initial_penetration, palm_contact and,
     per protocol p (with '-' written '_'), p_success, p_reason (index into protocols.REASONS), p_move (m), p_rot
     (degrees) and for six-dir six_dir_move_dir, six_dir_rot_dir (B, 6)."""
     cfg.check()
@@ -150,19 +151,41 @@ def evaluate(spec: HandSpec, mesh: trimesh.Trimesh, wrist_pose, q, cfg: PhysicsC
     # fingertip Jacobians or the squeeze target depend on: prepare once
     batch, depth, palm = prepare(built[protocols[0]], mesh, wrist_pose, q, cfg)
     out: dict[str, np.ndarray] = {"initial_penetration": depth, "palm_contact": palm}
+    if backend == "warp":
+        out["physics_rerun_cpu"] = np.zeros(len(depth), bool)
     for p, scene in built.items():
         if backend == "cpu":
             sim = CpuSim(scene, cfg.workers)
             group = GROUP_PER_THREAD * sim.nthread
-        else:
+        elif backend == "mjx":
             from ffcgs_jax.physics.backend_mjx import MjxSim
 
             sim, group = MjxSim(scene), len(depth)
+        else:
+            from ffcgs_jax.physics.backend_warp import MAX_WORLDS, WarpSim
+
+            group = min(len(depth), MAX_WORLDS)
+            sim = WarpSim(scene, group)
         parts = []
         for i in range(0, len(depth), group):
             rows = slice(i, i + group)
-            parts.append(run_protocol(sim, batch.rows(rows), depth[rows], cfg, p))
+            part = run_protocol(sim, batch.rows(rows), depth[rows], cfg, p)
+            if backend == "warp" and sim.overflowed[: len(depth[rows])].any():
+                part = _rerun_on_cpu(scene, cfg, p, batch.rows(rows), depth[rows], part, sim.overflowed)
+                out["physics_rerun_cpu"][rows] |= sim.overflowed[: len(depth[rows])]
+            parts.append(part)
             tick(len(depth[rows]))
         for k in parts[0]:
             out[result_key(p, k)] = np.concatenate([r[k] for r in parts])
     return out
+
+
+def _rerun_on_cpu(scene: PhysicsScene, cfg: PhysicsConfig, protocol: str, batch: Batch, depth: np.ndarray,
+                  part: dict[str, np.ndarray], overflowed: np.ndarray) -> dict[str, np.ndarray]:
+    """The results of the grasps whose warp buffers overflowed, replaced by the CPU backend's: never scored from
+    a simulation that dropped contacts or constraints."""
+    idx = np.flatnonzero(overflowed[: len(depth)])
+    redo = run_protocol(CpuSim(scene, cfg.workers), batch.rows(idx), depth[idx], cfg, protocol)
+    for k, v in redo.items():
+        part[k][idx] = v
+    return part

@@ -1,0 +1,248 @@
+"""The physics test on MuJoCo Warp: `WarpSim`, the `backend.Simulator` interface with the grasps of a batch as
+the worlds of one `mujoco_warp.Data`.
+
+The same scene (`scene.build`), protocols and success rules as the CPU backend. Each step's inputs (servo targets,
+the wrist's mocap position) come from per-chunk buffers on the device, indexed by a step counter that also lives on
+the device, so on a CUDA device one step (inputs, `mujoco_warp.step`, counter) is captured once as a CUDA graph and
+replayed. A state is a device copy of what a step reads (qpos, qvel, act, warm start, time, mocap, ctrl), so the six
+pushes of six-dir each start from the same closed state, as on the CPU.
+
+Contact and constraint buffers are sized from the scene (`buffer_sizes`); MuJoCo Warp flags a world whose
+contacts or constraint rows did not fit (`Data.overflow`). Such a world's result is not trusted: `WarpSim.overflowed`
+marks it and `runner.evaluate` runs those grasps again on the CPU.
+
+Needs `pip install -e ".[warp]"` (warp-lang, mujoco-warp). It runs on a CUDA device, or slowly on the CPU (what
+the tests use); kernels compile on first use (about a minute) and are cached on disk by Warp.
+"""
+
+import dataclasses
+import typing
+
+import mujoco
+import numpy as np
+
+from ffcgs_jax.errors import FfcgsError
+from ffcgs_jax.physics.backend import CHUNK, Batch, Segment, pose_hand
+from ffcgs_jax.physics.scene import PhysicsScene
+
+MAX_WORLDS = 8192  # grasps simulated at once: 8192 worlds of the mug scene fit an H100 with room to spare
+_STATE_FIELDS = ("qpos", "qvel", "act", "qacc_warmstart", "time", "mocap_pos", "mocap_quat", "ctrl")
+
+
+def unavailable() -> str | None:
+    """Why the warp backend cannot run here, or None when it can."""
+    try:
+        import mujoco_warp  # noqa: F401
+        import warp  # noqa: F401
+    except ImportError as e:
+        return f"the warp physics backend needs warp-lang and mujoco-warp (pip install -e \".[warp]\"): {e}"
+    return None
+
+
+def cuda_available() -> bool:
+    """A CUDA device Warp can use is present (the warp backend is then the fast choice)."""
+    if unavailable() is not None:
+        return False
+    import warp as wp
+
+    return wp.get_cuda_device_count() > 0
+
+
+def buffer_sizes(scene: PhysicsScene) -> tuple[int, int]:
+    """(contacts, constraint rows) to allocate per world. Every hand geom may touch the object (several points
+    for a box or a mesh part) and the table; each contact takes condim rows (elliptic cones) or 2 (condim - 1)
+    (pyramidal), the equality constraints 6 rows each. Generous: memory is cheap next to a wrong result, and
+    `Data.overflow` catches the rest."""
+    m = scene.model
+    nhand, nobj = len(scene.hand_geoms), len(scene.obj_geoms)
+    nconmax = int(8 * nhand + 4 * nobj + 32)
+    condim = int(m.geom_condim.max())
+    rows = condim if m.opt.cone == mujoco.mjtCone.mjCONE_ELLIPTIC else 2 * (condim - 1)
+    return nconmax, int(rows * nconmax + 6 * m.neq + m.nv)
+
+
+@typing.no_type_check  # Warp's annotations are array specs, not types: no runtime type checking here
+def _kernels():
+    import warp as wp
+
+    @wp.kernel
+    @typing.no_type_check
+    def inputs(counter: wp.array(dtype=wp.int32), ctrl_buf: wp.array3d(dtype=wp.float32),
+               pos_buf: wp.array2d(dtype=wp.vec3), ctrl: wp.array2d(dtype=wp.float32),
+               mocap_pos: wp.array2d(dtype=wp.vec3)):
+        w = wp.tid()
+        j = counter[0]
+        jc = wp.min(j, counter[1] - 1)  # a constant segment has one row of inputs
+        for a in range(ctrl.shape[1]):
+            ctrl[w, a] = ctrl_buf[w, jc, a]
+        mocap_pos[w, 0] = pos_buf[w, wp.min(j, counter[2] - 1)]
+
+    @wp.kernel
+    @typing.no_type_check
+    def advance(counter: wp.array(dtype=wp.int32)):
+        counter[0] = counter[0] + 1
+
+    return inputs, advance
+
+
+@dataclasses.dataclass
+class WarpState:
+    """Device copies of the per-world arrays a step reads; `n` of the worlds are grasps, the rest padding."""
+
+    arrays: dict
+    n: int
+
+
+class WarpSim:
+    """Runs segments for a batch of up to `nworld` grasps on MuJoCo Warp (batches are padded to `nworld`)."""
+
+    def __init__(self, scene: PhysicsScene, nworld: int, device: str | None = None,
+                 sizes: tuple[int, int] | None = None):
+        reason = unavailable()
+        if reason:
+            raise FfcgsError(reason)
+        import mujoco_warp as mjw
+        import warp as wp
+
+        m = scene.model
+        if m.nmocap != 1:
+            raise FfcgsError(f"the warp backend drives one mocap wrist, the scene has {m.nmocap}")
+        self.scene, self.nworld = scene, int(nworld)
+        self.nconmax, self.njmax = sizes or buffer_sizes(scene)
+        self.device = wp.get_device(device)
+        self._wp, self._mjw = wp, mjw
+        self._inputs, self._advance = _kernels()
+        bits = mjw.OverflowType
+        self._bad = int(bits.NEFC | bits.NJMAX_NNZ | bits.BROADPHASE | bits.NARROWPHASE | bits.CCD | bits.NVMAX
+                        | bits.EPA_HORIZON)
+        with wp.ScopedDevice(self.device):
+            d0 = mujoco.MjData(m)  # no forward pass: its contacts would count against the buffers
+            self.m = mjw.put_model(m)
+            self.d = mjw.put_data(m, d0, nworld=self.nworld, nconmax=self.nconmax, njmax=self.njmax)
+            self.ctrl_buf = wp.zeros((self.nworld, CHUNK, m.nu), dtype=wp.float32)
+            self.pos_buf = wp.zeros((self.nworld, CHUNK), dtype=wp.vec3)
+            self.counter = wp.zeros(3, dtype=wp.int32)
+        self.overflowed = np.zeros(self.nworld, bool)
+        self._graph = None
+
+    # ---------------------------------------------------------------------------------------------------------
+    # state <-> Data
+
+    def _pad(self, x: np.ndarray) -> np.ndarray:
+        x = np.asarray(x)
+        if len(x) > self.nworld:
+            raise FfcgsError(f"a warp batch holds at most {self.nworld} grasps, got {len(x)}")
+        return np.concatenate([x, np.repeat(x[:1], self.nworld - len(x), axis=0)]) if len(x) < self.nworld else x
+
+    def _save(self, n: int) -> WarpState:
+        return WarpState({f: self._wp.clone(getattr(self.d, f)) for f in _STATE_FIELDS}, n)
+
+    def _load(self, state: WarpState) -> None:
+        for f in _STATE_FIELDS:
+            self._wp.copy(getattr(self.d, f), state.arrays[f])
+
+    def _assign(self, field: str, values: np.ndarray) -> None:
+        arr = getattr(self.d, field)
+        arr.assign(self._wp.array(np.ascontiguousarray(values, dtype=arr.numpy().dtype), dtype=arr.dtype,
+                                  device=self.device))
+
+    def initial(self, batch: Batch) -> WarpState:
+        """Each grasp's start (hand at its wrist pose with the fingers at q_start, at rest), set on the CPU."""
+        m, sc = self.scene.model, self.scene
+        d = mujoco.MjData(m)
+        b = len(batch.q_start)
+        qpos = np.zeros((b, m.nq))
+        for g in range(b):
+            pose_hand(sc, d, batch.wrist_pos[g], batch.wrist_quat[g], batch.q_start[g])
+            qpos[g] = d.qpos
+        self._assign("qpos", self._pad(qpos))
+        for f in ("qvel", "act", "qacc_warmstart", "time", "xfrc_applied", "qfrc_applied"):
+            getattr(self.d, f).zero_()
+        self._assign("mocap_pos", self._pad(batch.wrist_pos)[:, None])
+        self._assign("mocap_quat", self._pad(batch.wrist_quat)[:, None])
+        self._assign("ctrl", self._pad(batch.q_start))
+        self.overflowed[:] = False
+        return self._save(b)
+
+    # ---------------------------------------------------------------------------------------------------------
+    # stepping
+
+    def _step(self) -> None:
+        wp = self._wp
+        wp.launch(self._inputs, dim=self.nworld, inputs=[self.counter, self.ctrl_buf, self.pos_buf],
+                  outputs=[self.d.ctrl, self.d.mocap_pos], device=self.device)
+        self._mjw.step(self.m, self.d)
+        wp.launch(self._advance, dim=1, inputs=[self.counter], device=self.device)
+
+    def _steps(self, k: int) -> None:
+        wp = self._wp
+        if not self.device.is_cuda:
+            for _ in range(k):
+                self._step()
+            return
+        if self._graph is None:  # buffers and counter stay put, so one captured step serves every chunk
+            with wp.ScopedCapture(device=self.device) as capture:
+                self._step()
+            self._graph = capture.graph
+            k -= 1  # the capture ran the step once
+        for _ in range(k):
+            wp.capture_launch(self._graph)
+
+    def run(self, state: WarpState, batch: Batch, seg: Segment, track=None) -> WarpState:
+        """Advance `state` through `seg`; `track(state)` sees the state after each `CHUNK` of steps."""
+        wp, m, sc = self._wp, self.scene.model, self.scene
+        self._load(state)
+        with wp.ScopedDevice(self.device):
+            self.d.overflow.zero_()
+            xfrc = np.zeros((self.nworld, m.nbody, 6))
+            if seg.force is not None:
+                xfrc[:, sc.obj_body, :3] = seg.force
+            self._assign("xfrc_applied", xfrc)
+            if sc.hold_eq >= 0:
+                active = np.ones((self.nworld, m.neq), bool)
+                active[:, sc.hold_eq] = seg.hold
+                self._assign("eq_active", active)
+            wrist = self._pad(batch.wrist_pos)
+            for i0 in range(0, seg.n, CHUNK):
+                i1 = min(seg.n, i0 + CHUNK)
+                ctrl, off = seg.make(i0, i1)
+                ctrl = self._pad(np.broadcast_to(ctrl, (len(batch.wrist_pos), *ctrl.shape[1:])))
+                pos = wrist[:, None] + off[None]
+                self.ctrl_buf[:, : ctrl.shape[1]].assign(wp.array(ctrl.astype(np.float32), dtype=wp.float32))
+                self.pos_buf[:, : pos.shape[1]].assign(wp.array(pos.astype(np.float32), dtype=wp.vec3))
+                self.counter.assign(wp.array([0, ctrl.shape[1], pos.shape[1]], dtype=wp.int32))
+                self._steps(i1 - i0)
+                if track is not None:  # a probe reloads this same state: stepping goes on from it
+                    track(self._save(state.n))
+            self.overflowed |= (self.d.overflow.numpy() & self._bad) != 0
+            return self._save(state.n)
+
+    # ---------------------------------------------------------------------------------------------------------
+    # reading
+
+    def probe(self, state: WarpState, batch: Batch, offset=(0.0, 0.0, 0.0)) -> dict[str, np.ndarray]:
+        """Object pose (world, and position in the hand's root frame), table and hand contact of each state, with
+        the wrist target moved by `offset` (3,)."""
+        sc, b = self.scene, state.n
+        self._load(state)
+        with self._wp.ScopedDevice(self.device):
+            self._assign("mocap_pos", self._pad(batch.wrist_pos + np.asarray(offset))[:, None])
+            self._assign("mocap_quat", self._pad(batch.wrist_quat)[:, None])
+            self._mjw.forward(self.m, self.d)
+            xpos, xquat = self.d.xpos.numpy()[:b], self.d.xquat.numpy()[:b]
+            xmat = self.d.xmat.numpy()[:b].reshape(b, -1, 3, 3)
+            n = int(self.d.nacon.numpy()[0])
+            geom = self.d.contact.geom.numpy()[:n]
+            world = self.d.contact.worldid.numpy()[:n]
+        pos, quat = xpos[:, sc.obj_body].astype(np.float64), xquat[:, sc.obj_body].astype(np.float64)
+        root = xmat[:, sc.root_body].astype(np.float64)
+        rel = np.einsum("bji,bj->bi", root, pos - xpos[:, sc.root_body])
+        is_obj = np.isin(geom, sc.obj_geoms)
+        obj_pair = is_obj.any(1)
+        table = obj_pair & (geom == sc.table_geom).any(1)
+        touch = obj_pair & np.isin(geom, sc.hand_geoms).any(1)
+        keep = world < b
+        table_w, touch_w = np.zeros(b, bool), np.zeros(b, bool)
+        table_w[world[keep & table]] = True
+        touch_w[world[keep & touch]] = True
+        return dict(pos=pos, quat=quat, rel=rel, table=table_w, touch=touch_w)

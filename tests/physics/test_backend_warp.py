@@ -1,0 +1,61 @@
+"""The MuJoCo Warp backend against the CPU backend on the same grasps: same outcomes, same failure reasons, moves
+within a millimetre; a world whose contact buffers overflow is run again on the CPU, never scored from the
+overflowed simulation. Warp runs on the CPU here (slowly; its kernels compile once, about a minute, and are cached
+on disk), so these tests need `pip install -e ".[warp]"` and are skipped without it."""
+
+import numpy as np
+import pytest
+
+from ffcgs_jax.errors import FfcgsError
+from ffcgs_jax.physics import backend_warp
+from ffcgs_jax.physics import runner as physics
+from ffcgs_jax.physics.config import PhysicsConfig
+from test_runner import BALL, SPEC, _grasps, enveloping_ball_grasp
+
+pytestmark = pytest.mark.skipif(backend_warp.unavailable() is not None, reason="warp-lang / mujoco-warp missing")
+
+FAST = PhysicsConfig(friction=1.0, close_time=0.2, settle_time=0.1, lift_height=0.03, shake_cycles=1,
+                     shake_amplitude=0.02, push_time=0.2)
+
+
+def _four():
+    Ts, qs = _grasps(3)
+    far, q = enveloping_ball_grasp(shift=0.05)  # touches nothing: fails as "lost" on both
+    return np.concatenate([Ts, far[None]]), np.concatenate([qs, q[None]])
+
+
+def test_warp_gives_the_cpu_outcomes():
+    Ts, qs = _four()
+    cpu = physics.evaluate(SPEC, BALL, Ts, qs, FAST, backend="cpu")
+    warp = physics.evaluate(SPEC, BALL, Ts, qs, FAST, backend="warp")
+    for p in ("lift_shake", "six_dir"):
+        np.testing.assert_array_equal(warp[f"{p}_success"], cpu[f"{p}_success"], err_msg=p)
+        np.testing.assert_array_equal(warp[f"{p}_reason"], cpu[f"{p}_reason"], err_msg=p)
+        ok = cpu[f"{p}_success"]
+        np.testing.assert_allclose(warp[f"{p}_move"][ok], cpu[f"{p}_move"][ok], atol=1e-3, err_msg=p)
+    assert cpu["lift_shake_success"].tolist() == [True, True, False, False]  # the comparison covers both outcomes
+    assert not warp["physics_rerun_cpu"].any()
+
+
+def test_overflowed_worlds_are_rerun_on_the_cpu(monkeypatch):
+    """Buffers of 2 contacts cannot hold a grasp: every world overflows, and the results are the CPU's."""
+    Ts, qs = _four()
+    monkeypatch.setattr(backend_warp, "buffer_sizes", lambda scene: (2, 60))
+    warp = physics.evaluate(SPEC, BALL, Ts[:2], qs[:2], FAST, protocols=("six-dir",), backend="warp")
+    cpu = physics.evaluate(SPEC, BALL, Ts[:2], qs[:2], FAST, protocols=("six-dir",), backend="cpu")
+    assert warp["physics_rerun_cpu"].all()
+    for k in ("six_dir_success", "six_dir_reason", "six_dir_move", "six_dir_move_dir"):
+        np.testing.assert_array_equal(warp[k], cpu[k], err_msg=k)
+
+
+def test_buffer_sizes_grow_with_the_scene():
+    small = physics.scenes(SPEC, BALL, FAST, ("six-dir",))["six-dir"]
+    ncon, njmax = backend_warp.buffer_sizes(small)
+    assert ncon >= 8 * len(small.hand_geoms) and njmax >= 3 * ncon
+
+
+def test_a_batch_larger_than_the_worlds_is_refused():
+    scene = physics.scenes(SPEC, BALL, FAST, ("six-dir",))["six-dir"]
+    sim = backend_warp.WarpSim(scene, 2)
+    with pytest.raises(FfcgsError, match="at most 2 grasps"):
+        sim._pad(np.zeros((3, 3)))
