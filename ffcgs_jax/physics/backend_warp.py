@@ -142,9 +142,9 @@ class WarpSim:
             self._wp.copy(getattr(self.d, f), state.arrays[f])
 
     def _assign(self, field: str, values: np.ndarray) -> None:
-        arr = getattr(self.d, field)
-        arr.assign(self._wp.array(np.ascontiguousarray(values, dtype=arr.numpy().dtype), dtype=arr.dtype,
-                                  device=self.device))
+        wp, arr = self._wp, getattr(self.d, field)
+        scalar = wp.dtype_to_numpy(getattr(arr.dtype, "_wp_scalar_type_", arr.dtype))  # no device round trip
+        arr.assign(wp.array(np.ascontiguousarray(values, dtype=scalar), dtype=arr.dtype, device=self.device))
 
     def initial(self, batch: Batch) -> WarpState:
         """Each grasp's start (hand at its wrist pose with the fingers at q_start, at rest), set on the CPU."""
