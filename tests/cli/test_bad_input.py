@@ -37,6 +37,11 @@ def _grasps(path: Path, obj: str = "ball", n: int = 2) -> Path:
 def inputs(tmp_path, monkeypatch):
     """The working folder with one file of each kind of bad input (and a good grasp file)."""
     monkeypatch.chdir(tmp_path)
+    return make_inputs(tmp_path)
+
+
+def make_inputs(tmp_path: Path) -> Path:
+    """Write one file of each kind of bad input (and good grasp files) into `tmp_path`."""
     (tmp_path / "notes.txt").write_text("just some text\n")
     (tmp_path / "empty.npz").write_bytes(b"")
     np.savez(tmp_path / "pickled.npz", wrist_pose=np.array([{"a": 1}], dtype=object))
