@@ -109,7 +109,8 @@ def split_config_arg(argv: list[str]) -> tuple[str | None, list[str]]:
     return path, rest
 
 
-def with_overrides(cls: type[T], argv: list[str], prog: str, keep_prefixes: bool = False) -> T:
+def with_overrides(cls: type[T], argv: list[str], prog: str, keep_prefixes: bool = False,
+                   description: str | None = None) -> T:
     """Config `cls` from `--config FILE.toml` (if in `argv`) and then the command-line overrides in `argv`.
 
     Nested sections' fields are flags without their section prefix (`--res 64`) unless `keep_prefixes`, for
@@ -123,7 +124,8 @@ def with_overrides(cls: type[T], argv: list[str], prog: str, keep_prefixes: bool
     try:
         with contextlib.redirect_stderr(captured):
             cfg = tyro.cli(cls, default=default, args=argv, prog=prog,
-                           config=() if keep_prefixes else (tyro.conf.OmitArgPrefixes,), description=cls.__doc__)
+                           config=() if keep_prefixes else (tyro.conf.OmitArgPrefixes,),
+                           description=description or cls.__doc__)
     except SystemExit as e:
         if e.code in (0, None):  # --help
             sys.stderr.write(captured.getvalue())

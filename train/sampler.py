@@ -17,10 +17,9 @@ import typing
 from pathlib import Path
 
 import numpy as np
-import tyro
 
 from ffcgs_jax import files
-from ffcgs_jax.config import _coerce, check_all, load, split_config_arg
+from ffcgs_jax.config import _coerce, check_all, split_config_arg, with_overrides
 from ffcgs_jax.errors import FfcgsError
 from ffcgs_jax.learning import data as cvae_data
 from ffcgs_jax.learning.config import TrainConfig
@@ -142,10 +141,8 @@ def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else argv
     try:
         path, specs, rest = split_args(argv)
-        default = load(TrainConfig, path) if path else TrainConfig()
-        cfg = tyro.cli(TrainConfig, default=default, args=rest, prog="python -m train.sampler",
-                       description=__doc__)
-        check_all(cfg)
+        cfg = with_overrides(TrainConfig, rest if path is None else ["--config", path, *rest],
+                             "python -m train.sampler", keep_prefixes=True, description=__doc__)
         if specs:
             run_sweep(cfg, parse_sweep(cfg, specs))
         else:

@@ -39,15 +39,6 @@ def unavailable() -> str | None:
     return None
 
 
-def cuda_available() -> bool:
-    """A CUDA device Warp can use is present (the warp backend is then the fast choice)."""
-    if unavailable() is not None:
-        return False
-    import warp as wp
-
-    return wp.get_cuda_device_count() > 0
-
-
 def buffer_sizes(scene: PhysicsScene) -> tuple[int, int]:
     """(contacts, constraint rows) to allocate per world. Every hand geom may touch the object (several points
     for a box or a mesh part) and the table; each contact takes condim rows (elliptic cones) or 2 (condim - 1)
