@@ -6,6 +6,7 @@ Parsing and the entry point are `cli.main`'s.
 import dataclasses
 import json
 import math
+import sys
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -320,24 +321,37 @@ def _validate(gs, spec, mesh, cmd: GraspCmd):
     if len(idx) == 0:
         return gs.select(idx), [("kept after --validate", "0 of 0 valid grasps")]
     t0 = time.perf_counter()
-    res = _run_physics(spec, mesh, gs["wrist_pose"][idx], gs["q"][idx], cmd.physics, protocols, "cpu")
+    res, backend = _run_physics(spec, mesh, gs["wrist_pose"][idx], gs["q"][idx], cmd.physics, protocols)
     passed = np.logical_and.reduce([res[physics_protocols.result_key(p, "success")] for p in protocols])
     kept = gs.select(idx[passed])
     for k, v in res.items():
         kept.arrays[k] = v[passed]
     rows = physics_protocols.summary_rows(res, protocols)
     rows.append(("kept after --validate", f"{int(passed.sum())} of {len(idx)} valid grasps"
-                 f" ({time.perf_counter() - t0:.1f} s)"))
+                 f" ({time.perf_counter() - t0:.1f} s, physics backend {backend})"))
     return kept, rows
 
 
-def _run_physics(spec, mesh, wrist_pose, q, cfg: PhysicsConfig, protocols, backend: str) -> dict:
+def _run_physics(spec, mesh, wrist_pose, q, cfg: PhysicsConfig, protocols) -> tuple[dict, str]:
+    """The physics results and the backend that ran them (`cfg.backend` resolved; a fallback is said on stderr)."""
     from tqdm import tqdm
 
     from ffcgs_jax.physics import runner as physics
 
+    backend = physics_backend(cfg, len(q))
     with tqdm(total=len(q) * len(protocols), desc="physics", unit="grasp", disable=None, leave=False) as bar:
-        return physics.evaluate(spec, mesh, wrist_pose, q, cfg, protocols, backend, progress=bar.update)
+        return physics.evaluate(spec, mesh, wrist_pose, q, cfg, protocols, backend, progress=bar.update), backend
+
+
+def physics_backend(cfg: PhysicsConfig, n: int) -> str:
+    """`cfg.backend` resolved for `n` grasps on this machine; when "auto" falls back to the CPU, one line on stderr
+    says why."""
+    from ffcgs_jax.physics import runner as physics
+
+    backend, note = physics.resolve_backend(cfg.backend, n)
+    if note:
+        print(f"ffcgs: {note}", file=sys.stderr)
+    return backend
 
 
 @dataclasses.dataclass(frozen=True)
@@ -355,12 +369,10 @@ class EvalCmd:
         video: also record one trial of the first protocol to this .gif or .mp4.
         video_index: which grasp the video shows; default the first valid grasp that passed (else the first).
         all: test every grasp, not only those marked valid by the synthesis.
-        backend: cpu (MuJoCo, threads), mjx (MuJoCo MJX on the JAX device) or warp (MuJoCo Warp: grasps as worlds on
-            a CUDA GPU; `pip install -e ".[warp]"`).
         hand: built-in hand name or a hand-spec TOML.
         scale: multiplies the object's coordinates (0.001 for millimetre meshes); default the scale the grasp file
             records (1 for files without one).
-        physics: simulation and success-rule settings (flags without prefix: --friction, --mass, ...).
+        physics: simulator and success-rule settings (flags without prefix: --backend, --friction, --mass, ...).
     """
 
     grasps: tyro.conf.Positional[str] = tyro.MISSING
@@ -371,7 +383,6 @@ class EvalCmd:
     video: str | None = None
     video_index: int | None = None
     all: bool = False
-    backend: str = "cpu"
     hand: str = "svh"
     scale: float | None = None
     physics: PhysicsConfig = PhysicsConfig()
@@ -380,8 +391,6 @@ class EvalCmd:
         _protocols(self.protocol)
         if self.scale is not None and not (math.isfinite(self.scale) and self.scale > 0):
             raise FfcgsError(f"--scale must be a finite number > 0, got {self.scale}")
-        if self.backend not in ("cpu", "mjx", "warp"):
-            raise FfcgsError(f"unknown backend {self.backend!r}; backends: cpu, mjx, warp")
         if self.video is not None and Path(self.video).suffix.lower() not in (".gif", ".mp4"):
             raise FfcgsError(f"--video must end in .gif or .mp4, got {self.video}")
 
@@ -413,7 +422,7 @@ def run_eval(cmd: EvalCmd) -> None:
     if len(idx) == 0:
         raise FfcgsError(f"{cmd.grasps} has no valid grasps to test (use --all to test them anyway)")
     t0 = time.perf_counter()
-    res = _run_physics(spec, mesh, data["wrist_pose"][idx], data["q"][idx], cmd.physics, protocols, cmd.backend)
+    res, backend = _run_physics(spec, mesh, data["wrist_pose"][idx], data["q"][idx], cmd.physics, protocols)
     seconds = time.perf_counter() - t0
     n = len(valid)
     for k, v in res.items():  # grasps not tested get NaN / False / reason -1
@@ -427,7 +436,7 @@ def run_eval(cmd: EvalCmd) -> None:
     grasp_io.save_arrays(data, out)
     rows = physics_protocols.summary_rows(res, protocols)
     rows.append(("grasps tested", f"{len(idx)} ({'all' if cmd.all else 'valid'}) in {seconds:.1f} s, "
-                 f"{len(idx) * len(protocols) / seconds:.2f} trials/s, backend {cmd.backend}"))
+                 f"{len(idx) * len(protocols) / seconds:.2f} trials/s, backend {backend}"))
     _print_rows(rows)
     print(f"wrote {out}")
     if cmd.video:

@@ -27,6 +27,7 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 import json
+import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -159,7 +160,8 @@ def record_config(cfg: DatasetConfig) -> dict:
     d = dataclasses.asdict(cfg)
     for k in ("objects", "out", "shard", "annotate"):
         d.pop(k)
-    d["physics"].pop("workers")
+    for k in ("workers", "backend"):  # where the physics runs (the backends' outcomes agree: bench/RESULTS.md)
+        d["physics"].pop(k)
     d["grasp"].pop("devices")  # where it runs, not what it computes
     for k in ("cvae_oversample", "weights"):  # the planner samples geometric poses: cvae settings do not matter
         d["grasp"]["sampling"].pop(k)
@@ -258,6 +260,7 @@ def build(cfg: DatasetConfig, show_progress: bool = True) -> dict:
 
     from ffcgs_jax.hand import kinematics as K
     from ffcgs_jax.hand import spec as hand_spec
+    from ffcgs_jax.physics import runner as physics_runner
 
     cfg.check()
     srcs = sources(cfg)
@@ -271,6 +274,11 @@ def build(cfg: DatasetConfig, show_progress: bool = True) -> dict:
                          for s in srcs],
              "x64": bool(jax.config.jax_enable_x64)}
     writer = dataset_io.DatasetWriter(cfg.out, record_config(cfg), extra)
+    # after the checks: a refused build says one line
+    backend, note = physics_runner.resolve_backend(cfg.physics.backend, cfg.physics_chunk)
+    if note and show_progress:
+        print(f"ffcgs: {note}", file=sys.stderr)
+    cfg = dataclasses.replace(cfg, physics=dataclasses.replace(cfg.physics, backend=backend))
     expected = [schema.record_id(s.name, r) for s in srcs for r in range(cfg.rotations)]
     timing_log = writer.parts_dir / "timing.jsonl"
     t_start = time.perf_counter()
@@ -302,7 +310,8 @@ def build(cfg: DatasetConfig, show_progress: bool = True) -> dict:
         for rec in records(src, mesh, ann, cfg, todo):
             writer.add(rec)
         built += 1
-        row = {"object": src.name, "backend": jax.default_backend(), "cached": not ann.seconds, **ann.counts, **{f"{k}_s": round(v, 3) for k, v in ann.seconds.items()},
+        row = {"object": src.name, "backend": jax.default_backend(), "physics_backend": cfg.physics.backend,
+               "cached": not ann.seconds, **ann.counts, **{f"{k}_s": round(v, 3) for k, v in ann.seconds.items()},
                "rotations_s": round(time.perf_counter() - t1, 3), "total_s": round(time.perf_counter() - t0, 3)}
         with open(timing_log, "a") as f:
             f.write(json.dumps(row) + "\n")

@@ -90,7 +90,7 @@ class DatasetConfig:
         hand: built-in hand name or hand-spec TOML.
         shard: "K/N" builds only objects K, K+N, K+2N, ... (0-based, in build order) so N processes or machines
             can share one parts directory; the last to finish merges (or rerun without --shard to merge). Not part
-            of the dataset's config, nor is physics.workers: neither changes a record.
+            of the dataset's config, nor are physics.workers and physics.backend: none changes a record.
         annotate: False writes records only for objects already annotated (in OUT.parts/annotations, e.g. copied
             from the machines that annotated them) and merges them into a partial OUT, saying how many records
             are missing; the default annotates everything first.

@@ -2,8 +2,9 @@
 
 A backend is a simulator over one compiled `PhysicsScene`: `initial(batch)` gives the states of a batch of grasps,
 `run(state, batch, segment, track)` advances them through a `Segment` of open-loop control (calling
-`track(state)` after each `CHUNK` of steps), and `probe(state, batch, offset)` reads the object's pose and the
-contacts the success rules need. `protocols.run_protocol` drives any backend through a protocol;
+`track(state)` after each `CHUNK` of steps), `probe(state, batch, offset)` reads the object's pose and the
+contacts the success rules need, `take(state, idx)` keeps the grasps at `idx` (grasps whose failure is certain
+leave the batch) and `flagged(state)` says which grasps' simulation the backend cannot vouch for. `protocols.run_protocol` drives any backend through a protocol;
 `backend_cpu.CpuSim` (CPU MuJoCo) and `backend_mjx.MjxSim` (MJX) implement it and import only this module, never
 each other.
 """
@@ -59,6 +60,10 @@ class Simulator(Protocol):
     def run(self, state: Any, batch: Batch, seg: Segment, track: Callable | None = None) -> Any: ...
 
     def probe(self, state: Any, batch: Batch, offset=(0.0, 0.0, 0.0)) -> dict[str, np.ndarray]: ...
+
+    def take(self, state: Any, idx: np.ndarray) -> Any: ...
+
+    def flagged(self, state: Any) -> np.ndarray: ...
 
 
 def mat_to_quat(R: np.ndarray) -> np.ndarray:

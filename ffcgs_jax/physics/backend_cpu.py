@@ -70,6 +70,12 @@ class CpuSim:
                 track(state)
         return state
 
+    def take(self, state: np.ndarray, idx: np.ndarray) -> np.ndarray:
+        return state[idx]
+
+    def flagged(self, state: np.ndarray) -> np.ndarray:
+        return np.zeros(len(state), bool)  # CPU MuJoCo grows its buffers as needed
+
     def probe(self, state: np.ndarray, batch: Batch, offset=(0.0, 0.0, 0.0)) -> dict[str, np.ndarray]:
         """Object pose (world, and position in the hand's root frame), table and hand contact of each state, with
         the wrist target moved by `offset` (3,)."""

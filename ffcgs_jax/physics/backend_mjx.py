@@ -113,9 +113,10 @@ class MjxSim:
                             mocap_quat=self._put(batch.wrist_quat[:, None], self._dtype))
 
     def run(self, state: mjx.Data, batch: Batch, seg: Segment, track=None) -> mjx.Data:
-        """Advance `state` through `seg`; `track(state)` sees the state after each chunk."""
+        """Advance `state` through `seg`; `track(state)` sees the state after each chunk. `batch` may hold fewer
+        grasps than `state` (after `take`): the rows past it are padding."""
         sc, m = self.scene, self.scene.model
-        b = len(batch.q_start)
+        b = len(state.qpos)
         xfrc = np.zeros((b, m.nbody, 6))
         if seg.force is not None:
             xfrc[:, sc.obj_body, :3] = seg.force
@@ -125,21 +126,37 @@ class MjxSim:
         state = state.replace(xfrc_applied=self._put(xfrc, self._dtype), eq_active=self._put(active))
         ctrl = np.zeros((b, CHUNK, m.nu))
         mocap = np.zeros((b, CHUNK, 3))
+        wrist = _pad(batch.wrist_pos, b)
         for i0 in range(0, seg.n, CHUNK):
             i1 = min(seg.n, i0 + CHUNK)
             c, off = seg.make(i0, i1)
-            ctrl[:, : i1 - i0] = c
-            mocap[:, : i1 - i0] = batch.wrist_pos[:, None] + off[None]
+            ctrl[:, : i1 - i0] = _pad(np.broadcast_to(c, (len(batch.wrist_pos), *c.shape[1:])), b)
+            mocap[:, : i1 - i0] = wrist[:, None] + off[None]
             state = self._call(self._run, self.model, state, self._put(ctrl, self._dtype),
                                self._put(mocap, self._dtype), self._put(i1 - i0, np.int32))
             if track is not None:
                 track(state)
         return state
 
+    def take(self, state: mjx.Data, idx: np.ndarray) -> mjx.Data:
+        """The grasps at `idx` first, padded to the batch's size: a smaller batch would compile the step anew."""
+        rows = _pad(np.asarray(idx), len(state.qpos))
+        return jax.tree_util.tree_map(lambda x: x[rows], state)
+
+    def flagged(self, state: mjx.Data) -> np.ndarray:
+        return np.zeros(len(state.qpos), bool)  # fixed contact slots per pair: nothing to overflow
+
     def probe(self, state: mjx.Data, batch: Batch, offset=(0.0, 0.0, 0.0)) -> dict[str, np.ndarray]:
         """Object pose (world, and position in the hand's root frame), table and hand contact of each state, with
         the wrist target moved by `offset` (3,)."""
-        mocap = self._put(batch.wrist_pos + np.asarray(offset), self._dtype)
+        n = len(batch.wrist_pos)
+        mocap = self._put(_pad(batch.wrist_pos + np.asarray(offset), len(state.qpos)), self._dtype)
         out = self._call(self._probe, self.model, state, mocap, self.scene.obj_body, self.scene.root_body,
                          *self._masks)
-        return {k: np.asarray(v, bool if k in ("table", "touch") else np.float64) for k, v in out.items()}
+        return {k: np.asarray(v, bool if k in ("table", "touch") else np.float64)[:n] for k, v in out.items()}
+
+
+def _pad(x: np.ndarray, n: int) -> np.ndarray:
+    """`x` with its first row repeated up to n rows."""
+    x = np.asarray(x)
+    return np.concatenate([x, np.repeat(x[:1], n - len(x), axis=0)]) if len(x) < n else x

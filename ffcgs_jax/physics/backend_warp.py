@@ -8,7 +8,7 @@ replayed. A state is a device copy of what a step reads (qpos, qvel, act, warm s
 pushes of six-dir each start from the same closed state, as on the CPU.
 
 Contact and constraint buffers are sized from the scene (`buffer_sizes`); MuJoCo Warp flags a world whose
-contacts or constraint rows did not fit (`Data.overflow`). Such a world's result is not trusted: `WarpSim.overflowed`
+contacts or constraint rows did not fit (`Data.overflow`). Such a world's result is not trusted: `WarpSim.flagged`
 marks it and `runner.evaluate` runs those grasps again on the CPU.
 
 Needs `pip install -e ".[warp]"` (warp-lang, mujoco-warp). It runs on a CUDA device, or slowly on the CPU (what
@@ -26,6 +26,7 @@ from ffcgs_jax.physics.backend import CHUNK, Batch, Segment, pose_hand
 from ffcgs_jax.physics.scene import PhysicsScene
 
 MAX_WORLDS = 8192  # grasps simulated at once: 8192 worlds of the mug scene fit an H100 with room to spare
+MIN_WORLDS = 64  # the smallest batch of worlds survivors move to: below it a step costs about the same
 _STATE_FIELDS = ("qpos", "qvel", "act", "qacc_warmstart", "time", "mocap_pos", "mocap_quat", "ctrl")
 
 
@@ -37,6 +38,14 @@ def unavailable() -> str | None:
     except ImportError as e:
         return f"the warp physics backend needs warp-lang and mujoco-warp (pip install -e \".[warp]\"): {e}"
     return None
+
+
+def no_cuda() -> str | None:
+    """Why warp would run on the CPU here (no CUDA device), or None when it has one."""
+    import warp as wp
+
+    wp.config.quiet = True  # no start-up banner on stdout: commands print their own results there
+    return None if wp.get_cuda_device_count() > 0 else "Warp finds no CUDA device"
 
 
 def buffer_sizes(scene: PhysicsScene) -> tuple[int, int]:
@@ -78,14 +87,33 @@ def _kernels():
 
 @dataclasses.dataclass
 class WarpState:
-    """Device copies of the per-world arrays a step reads; `n` of the worlds are grasps, the rest padding."""
+    """The per-world arrays a step reads, for `n` grasps: device arrays of one `_Worlds` (rows past n are
+    padding), or host arrays of n rows after `WarpSim.take`. `overflow` (n,): a world's buffers overflowed at some
+    step so far."""
 
     arrays: dict
     n: int
+    overflow: np.ndarray
+
+
+class _Worlds:
+    """One `mujoco_warp.Data` of `nworld` worlds, its per-chunk input buffers and its captured step."""
+
+    def __init__(self, sim: "WarpSim", nworld: int):
+        wp, m = sim._wp, sim.scene.model
+        self.nworld = nworld
+        d0 = mujoco.MjData(m)  # no forward pass: its contacts would count against the buffers
+        self.d = sim._mjw.put_data(m, d0, nworld=nworld, nconmax=sim.nconmax, njmax=sim.njmax)
+        self.ctrl_buf = wp.zeros((nworld, CHUNK, m.nu), dtype=wp.float32)
+        self.pos_buf = wp.zeros((nworld, CHUNK), dtype=wp.vec3)
+        self.counter = wp.zeros(3, dtype=wp.int32)
+        self.graph = None
 
 
 class WarpSim:
-    """Runs segments for a batch of up to `nworld` grasps on MuJoCo Warp (batches are padded to `nworld`)."""
+    """Runs segments for a batch of up to `nworld` grasps on MuJoCo Warp. A batch runs on the smallest of
+    nworld, nworld / 2, nworld / 4, ... (down to `MIN_WORLDS`) worlds that holds it, padded: as grasps whose failure
+    is certain leave (`take`), the survivors move to fewer worlds and each step costs less."""
 
     def __init__(self, scene: PhysicsScene, nworld: int, device: str | None = None,
                  sizes: tuple[int, int] | None = None):
@@ -107,35 +135,61 @@ class WarpSim:
         self._bad = int(bits.NEFC | bits.NJMAX_NNZ | bits.BROADPHASE | bits.NARROWPHASE | bits.CCD | bits.NVMAX
                         | bits.EPA_HORIZON)
         with wp.ScopedDevice(self.device):
-            d0 = mujoco.MjData(m)  # no forward pass: its contacts would count against the buffers
             self.m = mjw.put_model(m)
-            self.d = mjw.put_data(m, d0, nworld=self.nworld, nconmax=self.nconmax, njmax=self.njmax)
-            self.ctrl_buf = wp.zeros((self.nworld, CHUNK, m.nu), dtype=wp.float32)
-            self.pos_buf = wp.zeros((self.nworld, CHUNK), dtype=wp.vec3)
-            self.counter = wp.zeros(3, dtype=wp.int32)
-        self.overflowed = np.zeros(self.nworld, bool)
-        self._graph = None
+        self._worlds: dict[int, _Worlds] = {}
+
+    def _size(self, n: int) -> int:
+        if n > self.nworld:
+            raise FfcgsError(f"a warp batch holds at most {self.nworld} grasps, got {n}")
+        size = self.nworld
+        while size // 2 >= max(n, MIN_WORLDS):
+            size //= 2
+        return size
+
+    def _worlds_for(self, n: int) -> _Worlds:
+        size = self._size(n)
+        if size not in self._worlds:
+            with self._wp.ScopedDevice(self.device):
+                self._worlds[size] = _Worlds(self, size)
+        return self._worlds[size]
 
     # ---------------------------------------------------------------------------------------------------------
     # state <-> Data
 
-    def _pad(self, x: np.ndarray) -> np.ndarray:
+    def _pad(self, x: np.ndarray, size: int | None = None) -> np.ndarray:
         x = np.asarray(x)
-        if len(x) > self.nworld:
-            raise FfcgsError(f"a warp batch holds at most {self.nworld} grasps, got {len(x)}")
-        return np.concatenate([x, np.repeat(x[:1], self.nworld - len(x), axis=0)]) if len(x) < self.nworld else x
+        size = size or self._size(len(x))
+        return np.concatenate([x, np.repeat(x[:1], size - len(x), axis=0)]) if len(x) < size else x
 
-    def _save(self, n: int) -> WarpState:
-        return WarpState({f: self._wp.clone(getattr(self.d, f)) for f in _STATE_FIELDS}, n)
+    def _save(self, w: _Worlds, n: int, overflow: np.ndarray) -> WarpState:
+        return WarpState({f: self._wp.clone(getattr(w.d, f)) for f in _STATE_FIELDS}, n, overflow)
 
-    def _load(self, state: WarpState) -> None:
+    def _load(self, state: WarpState) -> _Worlds:
+        w = self._worlds_for(state.n)
         for f in _STATE_FIELDS:
-            self._wp.copy(getattr(self.d, f), state.arrays[f])
+            a = state.arrays[f]
+            if isinstance(a, np.ndarray):
+                self._assign(w, f, self._pad(a, w.nworld))
+            else:
+                self._wp.copy(getattr(w.d, f), a)
+        return w
 
-    def _assign(self, field: str, values: np.ndarray) -> None:
-        wp, arr = self._wp, getattr(self.d, field)
+    def _assign(self, w: _Worlds, field: str, values: np.ndarray) -> None:
+        wp, arr = self._wp, getattr(w.d, field)
         scalar = wp.dtype_to_numpy(getattr(arr.dtype, "_wp_scalar_type_", arr.dtype))  # no device round trip
         arr.assign(wp.array(np.ascontiguousarray(values, dtype=scalar), dtype=arr.dtype, device=self.device))
+
+    def take(self, state: WarpState, idx: np.ndarray) -> WarpState:
+        """The grasps at `idx`, as host arrays (one download and gather; the next run uploads them to the
+        smallest worlds that hold them)."""
+        idx = np.asarray(idx)
+        if len(idx) == state.n and (idx == np.arange(state.n)).all():
+            return state
+        arrays = {f: (a if isinstance(a, np.ndarray) else a.numpy())[idx] for f, a in state.arrays.items()}
+        return WarpState(arrays, len(idx), state.overflow[idx])
+
+    def flagged(self, state: WarpState) -> np.ndarray:
+        return state.overflow
 
     def initial(self, batch: Batch) -> WarpState:
         """Each grasp's start (hand at its wrist pose with the fingers at q_start, at rest), set on the CPU."""
@@ -146,67 +200,69 @@ class WarpSim:
         for g in range(b):
             pose_hand(sc, d, batch.wrist_pos[g], batch.wrist_quat[g], batch.q_start[g])
             qpos[g] = d.qpos
-        self._assign("qpos", self._pad(qpos))
-        for f in ("qvel", "act", "qacc_warmstart", "time", "xfrc_applied", "qfrc_applied"):
-            getattr(self.d, f).zero_()
-        self._assign("mocap_pos", self._pad(batch.wrist_pos)[:, None])
-        self._assign("mocap_quat", self._pad(batch.wrist_quat)[:, None])
-        self._assign("ctrl", self._pad(batch.q_start))
-        self.overflowed[:] = False
-        return self._save(b)
+        w = self._worlds_for(b)
+        with self._wp.ScopedDevice(self.device):
+            self._assign(w, "qpos", self._pad(qpos, w.nworld))
+            for f in ("qvel", "act", "qacc_warmstart", "time", "xfrc_applied", "qfrc_applied"):
+                getattr(w.d, f).zero_()
+            self._assign(w, "mocap_pos", self._pad(batch.wrist_pos, w.nworld)[:, None])
+            self._assign(w, "mocap_quat", self._pad(batch.wrist_quat, w.nworld)[:, None])
+            self._assign(w, "ctrl", self._pad(batch.q_start, w.nworld))
+            return self._save(w, b, np.zeros(b, bool))
 
     # ---------------------------------------------------------------------------------------------------------
     # stepping
 
-    def _step(self) -> None:
+    def _step(self, w: _Worlds) -> None:
         wp = self._wp
-        wp.launch(self._inputs, dim=self.nworld, inputs=[self.counter, self.ctrl_buf, self.pos_buf],
-                  outputs=[self.d.ctrl, self.d.mocap_pos], device=self.device)
-        self._mjw.step(self.m, self.d)
-        wp.launch(self._advance, dim=1, inputs=[self.counter], device=self.device)
+        wp.launch(self._inputs, dim=w.nworld, inputs=[w.counter, w.ctrl_buf, w.pos_buf],
+                  outputs=[w.d.ctrl, w.d.mocap_pos], device=self.device)
+        self._mjw.step(self.m, w.d)
+        wp.launch(self._advance, dim=1, inputs=[w.counter], device=self.device)
 
-    def _steps(self, k: int) -> None:
+    def _steps(self, w: _Worlds, k: int) -> None:
         wp = self._wp
         if not self.device.is_cuda:
             for _ in range(k):
-                self._step()
+                self._step(w)
             return
-        if self._graph is None:  # buffers and counter stay put, so one captured step serves every chunk
+        if w.graph is None:  # buffers and counter stay put, so one captured step serves every chunk
             with wp.ScopedCapture(device=self.device) as capture:
-                self._step()
-            self._graph = capture.graph
+                self._step(w)
+            w.graph = capture.graph
             k -= 1  # the capture ran the step once
         for _ in range(k):
-            wp.capture_launch(self._graph)
+            wp.capture_launch(w.graph)
 
     def run(self, state: WarpState, batch: Batch, seg: Segment, track=None) -> WarpState:
         """Advance `state` through `seg`; `track(state)` sees the state after each `CHUNK` of steps."""
         wp, m, sc = self._wp, self.scene.model, self.scene
-        self._load(state)
+        n = state.n
         with wp.ScopedDevice(self.device):
-            self.d.overflow.zero_()
-            xfrc = np.zeros((self.nworld, m.nbody, 6))
+            w = self._load(state)
+            w.d.overflow.zero_()
+            xfrc = np.zeros((w.nworld, m.nbody, 6))
             if seg.force is not None:
                 xfrc[:, sc.obj_body, :3] = seg.force
-            self._assign("xfrc_applied", xfrc)
+            self._assign(w, "xfrc_applied", xfrc)
             if sc.hold_eq >= 0:
-                active = np.ones((self.nworld, m.neq), bool)
+                active = np.ones((w.nworld, m.neq), bool)
                 active[:, sc.hold_eq] = seg.hold
-                self._assign("eq_active", active)
-            wrist = self._pad(batch.wrist_pos)
+                self._assign(w, "eq_active", active)
+            wrist = self._pad(batch.wrist_pos, w.nworld)
             for i0 in range(0, seg.n, CHUNK):
                 i1 = min(seg.n, i0 + CHUNK)
                 ctrl, off = seg.make(i0, i1)
-                ctrl = self._pad(np.broadcast_to(ctrl, (len(batch.wrist_pos), *ctrl.shape[1:])))
+                ctrl = self._pad(np.broadcast_to(ctrl, (n, *ctrl.shape[1:])), w.nworld)
                 pos = wrist[:, None] + off[None]
-                self.ctrl_buf[:, : ctrl.shape[1]].assign(wp.array(ctrl.astype(np.float32), dtype=wp.float32))
-                self.pos_buf[:, : pos.shape[1]].assign(wp.array(pos.astype(np.float32), dtype=wp.vec3))
-                self.counter.assign(wp.array([0, ctrl.shape[1], pos.shape[1]], dtype=wp.int32))
-                self._steps(i1 - i0)
+                w.ctrl_buf[:, : ctrl.shape[1]].assign(wp.array(ctrl.astype(np.float32), dtype=wp.float32))
+                w.pos_buf[:, : pos.shape[1]].assign(wp.array(pos.astype(np.float32), dtype=wp.vec3))
+                w.counter.assign(wp.array([0, ctrl.shape[1], pos.shape[1]], dtype=wp.int32))
+                self._steps(w, i1 - i0)
                 if track is not None:  # a probe reloads this same state: stepping goes on from it
-                    track(self._save(state.n))
-            self.overflowed |= (self.d.overflow.numpy() & self._bad) != 0
-            return self._save(state.n)
+                    track(self._save(w, n, state.overflow))
+            overflow = state.overflow | ((w.d.overflow.numpy()[:n] & self._bad) != 0)
+            return self._save(w, n, overflow)
 
     # ---------------------------------------------------------------------------------------------------------
     # reading
@@ -215,16 +271,16 @@ class WarpSim:
         """Object pose (world, and position in the hand's root frame), table and hand contact of each state, with
         the wrist target moved by `offset` (3,)."""
         sc, b = self.scene, state.n
-        self._load(state)
         with self._wp.ScopedDevice(self.device):
-            self._assign("mocap_pos", self._pad(batch.wrist_pos + np.asarray(offset))[:, None])
-            self._assign("mocap_quat", self._pad(batch.wrist_quat)[:, None])
-            self._mjw.forward(self.m, self.d)
-            xpos, xquat = self.d.xpos.numpy()[:b], self.d.xquat.numpy()[:b]
-            xmat = self.d.xmat.numpy()[:b].reshape(b, -1, 3, 3)
-            n = int(self.d.nacon.numpy()[0])
-            geom = self.d.contact.geom.numpy()[:n]
-            world = self.d.contact.worldid.numpy()[:n]
+            w = self._load(state)
+            self._assign(w, "mocap_pos", self._pad(batch.wrist_pos + np.asarray(offset), w.nworld)[:, None])
+            self._assign(w, "mocap_quat", self._pad(batch.wrist_quat, w.nworld)[:, None])
+            self._mjw.forward(self.m, w.d)
+            xpos, xquat = w.d.xpos.numpy()[:b], w.d.xquat.numpy()[:b]
+            xmat = w.d.xmat.numpy()[:b].reshape(b, -1, 3, 3)
+            n = int(w.d.nacon.numpy()[0])
+            geom = w.d.contact.geom.numpy()[:n]
+            world = w.d.contact.worldid.numpy()[:n]
         pos, quat = xpos[:, sc.obj_body].astype(np.float64), xquat[:, sc.obj_body].astype(np.float64)
         root = xmat[:, sc.root_body].astype(np.float64)
         rel = np.einsum("bji,bj->bi", root, pos - xpos[:, sc.root_body])

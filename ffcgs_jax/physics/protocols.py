@@ -5,11 +5,13 @@ drives a backend (`backend.Simulator`) through them and applies the success rule
 """
 
 import math
+from collections.abc import Callable
+from typing import Any
 
 import numpy as np
 
 from ffcgs_jax.errors import FfcgsError
-from ffcgs_jax.physics.backend import Batch, Segment, Simulator
+from ffcgs_jax.physics.backend import CHUNK, Batch, Segment, Simulator
 from ffcgs_jax.physics.config import PROTOCOLS, PhysicsConfig
 
 LIFT_HOLD = 0.25  # seconds of rest between the lift and the shaking
@@ -104,41 +106,110 @@ def _reason(bad_start: np.ndarray, lost: np.ndarray, moved: np.ndarray) -> np.nd
 
 
 
+def _drive(sim: Simulator, state: Any, batch: Batch, rows: np.ndarray, segs: list[Segment], flagged: np.ndarray,
+           check: Callable[[Any, np.ndarray], np.ndarray] | None = None) -> tuple[Any, np.ndarray]:
+    """Run `segs` for the grasps `rows` of `batch` (their states: `state`) in pieces of `CHUNK` steps. After each
+    piece `check(state, rows)` says which grasps go on; the others leave the batch (`sim.take`), so a grasp whose
+    failure is already certain costs no more simulation. `flagged[rows]` collects the backend's untrusted worlds."""
+    for seg in segs:
+        for i0 in range(0, seg.n, CHUNK):
+            if len(rows) == 0:
+                return state, rows
+            i1 = min(seg.n, i0 + CHUNK)
+
+            def make(a, b, seg=seg, i0=i0, rows=rows):
+                ctrl, off = seg.make(i0 + a, i0 + b)
+                return ctrl[rows], off
+
+            state = sim.run(state, batch.rows(rows), Segment(i1 - i0, make, seg.force, seg.hold))
+            flagged[rows] |= sim.flagged(state)[: len(rows)]  # a backend may pad its batch
+            if check is not None:
+                keep = check(state, rows)
+                if not keep.all():
+                    state, rows = sim.take(state, np.flatnonzero(keep)), rows[keep]
+    return state, rows
+
+
+
 def run_protocol(sim: Simulator, batch: Batch, depth: np.ndarray, cfg: PhysicsConfig, protocol: str
                  ) -> dict[str, np.ndarray]:
-    """Execute and test every grasp of `batch` on `sim` (a `backend_cpu.CpuSim` or `backend_mjx.MjxSim` for the
-    protocol's scene). Returns per-grasp arrays: success, reason (index into REASONS), move (m), rot (deg) and, for
-    six-dir, move_dir / rot_dir (B, 6)."""
+    """Execute and test every grasp of `batch` on `sim` (a backend for the protocol's scene). Returns per-grasp
+    arrays: success, reason (index into REASONS), move (m), rot (deg), for six-dir move_dir / rot_dir (B, 6), and
+    flagged (the backend could not trust the simulation: `runner` runs those grasps again on the CPU).
+
+    Grasps stop being simulated as soon as their failure is certain: a grasp that starts in penetration is not
+    simulated (move and rot NaN); in lift-shake a grasp leaves once the hand no longer touches the object and the
+    object is `max_slip` or more from its place in the palm (dropped: its move and rot are then those of that
+    moment); in six-dir a grasp that lost the object while closing is not pushed, and one that moved or turned
+    past a bound in some direction is not pushed further (directions not pushed: NaN in move_dir / rot_dir)."""
     if protocol not in PROTOCOLS:
         raise FfcgsError(f"unknown protocol {protocol!r}; protocols: {', '.join(PROTOCOLS)}")
-    bad_start = depth > cfg.max_initial_penetration
-    state = sim.initial(batch)
-    for seg in closing(batch, cfg):
-        state = sim.run(state, batch, seg)
-    ref = sim.probe(state, batch)
-    if protocol == "lift-shake":
-        for seg in lift_shake(batch, cfg):
-            state = sim.run(state, batch, seg)
-        up = np.array([0.0, 0.0, cfg.lift_height])
-        end = sim.probe(state, batch, up)
-        move = np.linalg.norm(end["rel"] - ref["rel"], axis=1)
-        rot = _angle(end["quat"], ref["quat"])
-        lost = ~end["touch"]
-        moved = (move >= cfg.max_slip) | end["table"]
-        return dict(success=~(bad_start | lost | moved), reason=_reason(bad_start, lost, moved), move=move, rot=rot)
     b = len(depth)
-    move_dir, rot_dir = np.zeros((b, 6)), np.zeros((b, 6))
+    bad_start = depth > cfg.max_initial_penetration
+    flagged = np.zeros(b, bool)
+    move, rot = np.full(b, np.nan), np.full(b, np.nan)
+    lost = np.zeros(b, bool)
+    idx = np.flatnonzero(~bad_start)
+    if len(idx) == 0:
+        out = dict(success=np.zeros(b, bool), reason=_reason(bad_start, lost, lost), move=move, rot=rot)
+        if protocol == "six-dir":
+            out.update(move_dir=np.full((b, 6), np.nan), rot_dir=np.full((b, 6), np.nan))
+        return {**out, "flagged": flagged}
+    closed, _ = _drive(sim, sim.initial(batch.rows(idx)), batch, idx, closing(batch, cfg), flagged)
+    ref = {k: _scatter(v, idx, b) for k, v in sim.probe(closed, batch.rows(idx)).items()}
+    if protocol == "lift-shake":
+        def dropped(state, rows):
+            p = sim.probe(state, batch.rows(rows))
+            m = np.linalg.norm(p["rel"] - ref["rel"][rows], axis=1)
+            gone = ~p["touch"] & (m >= cfg.max_slip)
+            move[rows[gone]], rot[rows[gone]] = m[gone], _angle(p["quat"], ref["quat"][rows])[gone]
+            lost[rows[gone]] = True
+            return ~gone
+
+        state, rows = _drive(sim, closed, batch, idx, lift_shake(batch, cfg), flagged, dropped)
+        table = np.zeros(b, bool)
+        if len(rows):
+            end = sim.probe(state, batch.rows(rows), np.array([0.0, 0.0, cfg.lift_height]))
+            move[rows] = np.linalg.norm(end["rel"] - ref["rel"][rows], axis=1)
+            rot[rows] = _angle(end["quat"], ref["quat"][rows])
+            lost[rows], table[rows] = ~end["touch"], end["table"]
+        moved = (move >= cfg.max_slip) | table
+        return dict(success=~(bad_start | lost | moved), reason=_reason(bad_start, lost, moved), move=move, rot=rot,
+                    flagged=flagged)
+    move_dir, rot_dir = np.full((b, 6), np.nan), np.full((b, 6), np.nan)
+    lost[idx] = ~ref["touch"][idx]
+    where = np.zeros(b, np.int64)
+    where[idx] = np.arange(len(idx))  # row of each grasp in the closed states
+    failed = bad_start | lost
     for k, direction in enumerate(DIRECTIONS):
-        def track(s, k=k):
-            p = sim.probe(s, batch)
-            move_dir[:, k] = np.maximum(move_dir[:, k], np.linalg.norm(p["pos"] - ref["pos"], axis=1))
-            rot_dir[:, k] = np.maximum(rot_dir[:, k], _angle(p["quat"], ref["quat"]))
-        sim.run(state, batch, push(batch, cfg, direction, sim.scene.mass), track)
-    move, rot = move_dir.max(axis=1), rot_dir.max(axis=1)
-    lost = ~ref["touch"]
-    moved = (move >= cfg.max_move) | (rot >= cfg.max_rot_deg)
+        rows = np.flatnonzero(~failed)
+        if len(rows) == 0:
+            break
+        move_dir[rows, k], rot_dir[rows, k] = 0.0, 0.0
+
+        def pushed(state, rows, k=k):
+            p = sim.probe(state, batch.rows(rows))
+            move_dir[rows, k] = np.maximum(move_dir[rows, k], np.linalg.norm(p["pos"] - ref["pos"][rows], axis=1))
+            rot_dir[rows, k] = np.maximum(rot_dir[rows, k], _angle(p["quat"], ref["quat"][rows]))
+            out = (move_dir[rows, k] >= cfg.max_move) | (rot_dir[rows, k] >= cfg.max_rot_deg)
+            failed[rows[out]] = True
+            return ~out
+
+        _drive(sim, sim.take(closed, where[rows]), batch, rows, [push(batch, cfg, direction, sim.scene.mass)],
+               flagged, pushed)
+    tried = ~np.isnan(move_dir).all(axis=1)
+    move[tried], rot[tried] = np.nanmax(move_dir[tried], axis=1), np.nanmax(rot_dir[tried], axis=1)
+    moved = (np.nan_to_num(move) >= cfg.max_move) | (np.nan_to_num(rot) >= cfg.max_rot_deg)
     return dict(success=~(bad_start | lost | moved), reason=_reason(bad_start, lost, moved), move=move, rot=rot,
-                move_dir=move_dir, rot_dir=rot_dir)
+                move_dir=move_dir, rot_dir=rot_dir, flagged=flagged)
+
+
+
+def _scatter(values: np.ndarray, idx: np.ndarray, b: int) -> np.ndarray:
+    """Rows `idx` of a (b, ...) array set to `values`, the rest zero."""
+    out = np.zeros((b, *values.shape[1:]), values.dtype)
+    out[idx] = values
+    return out
 
 
 

@@ -22,13 +22,17 @@ Execution of one grasp (all grasps of a batch in parallel):
      `backend.CHUNK` steps and at its end).
 
 Failure modes are recorded per grasp (`reason`): penetration; lost (no hand contact left: dropped or pushed out
-while closing); slip (still touched but moved past the bound).
+while closing); slip (still touched but moved past the bound). A grasp stops being simulated as soon as its
+failure is certain (`protocols.run_protocol`: penetration at the start, dropped during lift-shake, past a bound in
+a six-dir push); the outcomes are those of simulating every grasp to the end (tested, and identical on 271 grasps).
 
-The simulator is CPU MuJoCo through `mujoco.rollout` (threads across grasps, no Python per step); the scene and
-the protocol are plain arrays, so `backend_mjx` runs the same plan on a GPU. The protocols and success
+The simulator (`PhysicsConfig.backend`, `resolve_backend`) is CPU MuJoCo through `mujoco.rollout` (threads across
+grasps, no Python per step) or MuJoCo Warp (`backend_warp`, grasps as worlds on a CUDA GPU); MJX
+(`backend_mjx`) runs the same plan, slowly. The protocols and success
 rules are in `protocols`, the backends' interface in `backend`.
 """
 
+import os
 from collections.abc import Callable
 
 import mujoco
@@ -41,11 +45,33 @@ from ffcgs_jax.physics import convex
 from ffcgs_jax.physics import scene as physics_scene
 from ffcgs_jax.physics.backend import Batch, mat_to_quat, pose_hand
 from ffcgs_jax.physics.backend_cpu import GROUP_PER_THREAD, CpuSim
-from ffcgs_jax.physics.config import PROTOCOLS, PhysicsConfig
+from ffcgs_jax.physics.config import BACKENDS, PROTOCOLS, PhysicsConfig
 from ffcgs_jax.physics.protocols import result_key, run_protocol
 from ffcgs_jax.physics.scene import PhysicsScene
 
-BACKENDS = ("cpu", "mjx", "warp")
+# One H100 with a 16-core host (bench/RESULTS.md): warp costs about 4 s per protocol pair to start plus 1/265 s per
+# grasp; CPU MuJoCo about 0.8 core-seconds per grasp. Warp wins from about 6 grasps per core.
+WARP_GRASPS_PER_CORE = 6
+
+
+def resolve_backend(name: str, n: int | None = None) -> tuple[str, str | None]:
+    """The backend `name` ("auto" or one of `config.BACKENDS`) runs `n` grasps on here, and for "auto" falling
+    back to the CPU, why (one line). "auto" is MuJoCo Warp when it is installed, a CUDA device is present and the
+    batch is large enough to pay for its start-up (`WARP_GRASPS_PER_CORE` per CPU core), else CPU MuJoCo."""
+    if name not in BACKENDS:
+        raise FfcgsError(f"unknown physics backend {name!r}; backends: {', '.join(BACKENDS)}")
+    if name != "auto":
+        return name, None
+    from ffcgs_jax.physics import backend_warp
+
+    if backend_warp.unavailable():
+        return "cpu", 'physics on the CPU: MuJoCo Warp is not installed (pip install -e ".[warp]" on a CUDA machine)'
+    if backend_warp.no_cuda():
+        return "cpu", "physics on the CPU: no CUDA device for MuJoCo Warp"
+    least = WARP_GRASPS_PER_CORE * (os.cpu_count() or 1)
+    if n is not None and n < least:
+        return "cpu", f"physics on the CPU: {n} grasps are too few for MuJoCo Warp to pay off here (from {least})"
+    return "warp", None
 
 
 def scenes(spec: HandSpec, mesh: trimesh.Trimesh, cfg: PhysicsConfig, protocols, table_z: float | None = None
@@ -127,31 +153,31 @@ def _contact_state(scene: PhysicsScene, d: mujoco.MjData) -> tuple[float, bool]:
 
 
 def evaluate(spec: HandSpec, mesh: trimesh.Trimesh, wrist_pose, q, cfg: PhysicsConfig = PhysicsConfig(),
-             protocols=PROTOCOLS, backend: str = "cpu", table_z: float | None = None,
+             protocols=PROTOCOLS, backend: str | None = None, table_z: float | None = None,
              progress: Callable[[int], None] | None = None) -> dict[str, np.ndarray]:
-    """Run the physics test on grasps (wrist_pose (B, 4, 4) object frame, q (B, Q) channels).
+    """Run the physics test on grasps (wrist_pose (B, 4, 4) object frame, q (B, Q) channels) on `backend`
+    (default `cfg.backend`; "auto" is resolved by `resolve_backend`).
 
     CPU runs the grasps in groups of `GROUP_PER_THREAD` x threads, so `progress(k)` (k grasps done) ticks often;
     MJX runs them as one batch, warp in batches of up to `backend_warp.MAX_WORLDS` worlds; grasps whose warp
-    contacts or constraints overflowed their buffers are run again on the CPU (`physics_rerun_cpu` marks them). Returns flat per-grasp arrays for an npz: initial_penetration, palm_contact and,
-    per protocol p (with '-' written '_'), p_success, p_reason (index into protocols.REASONS), p_move (m), p_rot
+    contacts or constraints overflowed their buffers are run again on the CPU (`physics_rerun_cpu` marks them).
+    Returns flat per-grasp arrays for an npz: initial_penetration, palm_contact and, per protocol p (with '-' written '_'), p_success, p_reason (index into protocols.REASONS), p_move (m), p_rot
     (degrees) and for six-dir six_dir_move_dir, six_dir_rot_dir (B, 6)."""
     cfg.check()
     protocols = tuple(protocols)
     for p in protocols:
         if p not in PROTOCOLS:
             raise FfcgsError(f"unknown protocol {p!r}; protocols: {', '.join(PROTOCOLS)}")
-    if backend not in BACKENDS:
-        raise FfcgsError(f"unknown physics backend {backend!r}; backends: {', '.join(BACKENDS)}")
     if len(np.asarray(q).reshape(-1)) == 0:
         raise FfcgsError("no grasps to test")
+    backend, _ = resolve_backend(cfg.backend if backend is None else backend, int(np.shape(q)[0]))
     tick = progress or (lambda n: None)
     built = scenes(spec, mesh, cfg, protocols, table_z)
     # the scenes differ only in gravity, table and the hold weld, none of which the hand-object contacts, the
     # fingertip Jacobians or the squeeze target depend on: prepare once
     batch, depth, palm = prepare(built[protocols[0]], mesh, wrist_pose, q, cfg)
     out: dict[str, np.ndarray] = {"initial_penetration": depth, "palm_contact": palm}
-    if backend == "warp":
+    if backend == "warp":  # the others have no buffers to overflow
         out["physics_rerun_cpu"] = np.zeros(len(depth), bool)
     for p, scene in built.items():
         if backend == "cpu":
@@ -170,9 +196,10 @@ def evaluate(spec: HandSpec, mesh: trimesh.Trimesh, wrist_pose, q, cfg: PhysicsC
         for i in range(0, len(depth), group):
             rows = slice(i, i + group)
             part = run_protocol(sim, batch.rows(rows), depth[rows], cfg, p)
-            if backend == "warp" and sim.overflowed[: len(depth[rows])].any():
-                part = _rerun_on_cpu(scene, cfg, p, batch.rows(rows), depth[rows], part, sim.overflowed)
-                out["physics_rerun_cpu"][rows] |= sim.overflowed[: len(depth[rows])]
+            flagged = part.pop("flagged")
+            if flagged.any():
+                part = _rerun_on_cpu(scene, cfg, p, batch.rows(rows), depth[rows], part, flagged)
+                out["physics_rerun_cpu"][rows] |= flagged
             parts.append(part)
             tick(len(depth[rows]))
         for k in parts[0]:
@@ -181,11 +208,12 @@ def evaluate(spec: HandSpec, mesh: trimesh.Trimesh, wrist_pose, q, cfg: PhysicsC
 
 
 def _rerun_on_cpu(scene: PhysicsScene, cfg: PhysicsConfig, protocol: str, batch: Batch, depth: np.ndarray,
-                  part: dict[str, np.ndarray], overflowed: np.ndarray) -> dict[str, np.ndarray]:
+                  part: dict[str, np.ndarray], flagged: np.ndarray) -> dict[str, np.ndarray]:
     """The results of the grasps whose warp buffers overflowed, replaced by the CPU backend's: never scored from
     a simulation that dropped contacts or constraints."""
-    idx = np.flatnonzero(overflowed[: len(depth)])
+    idx = np.flatnonzero(flagged)
     redo = run_protocol(CpuSim(scene, cfg.workers), batch.rows(idx), depth[idx], cfg, protocol)
+    redo.pop("flagged")
     for k, v in redo.items():
         part[k][idx] = v
     return part

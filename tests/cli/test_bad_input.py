@@ -117,7 +117,7 @@ CASES = [
     (["eval", "good.npz", "--scale", "0.5"], "is not the object these grasps were made for"),
     (["eval", "good.npz", "--scale", "-1"], "--scale must be a finite number > 0"),
     (["eval", "good.npz", "--protocol", "jump"], "unknown protocol 'jump'"),
-    (["eval", "good.npz", "--backend", "tpu"], "unknown backend 'tpu'"),
+    (["eval", "good.npz", "--backend", "tpu"], "unknown physics backend 'tpu'"),
     (["eval", "good.npz", "--video", "trial.avi"], "--video must end in .gif or .mp4"),
     (["eval", "good.npz", "--friction", "-1"], r"physics.friction must be in \[0.0, 10.0\]"),
     (["eval", "good.npz", "--out", "a_file/out.npz"], "a file stands where its folder should be"),

@@ -10,6 +10,7 @@ from ffcgs_jax.errors import FfcgsError
 from ffcgs_jax.physics import backend_warp
 from ffcgs_jax.physics import runner as physics
 from ffcgs_jax.physics.config import PhysicsConfig
+
 from test_runner import BALL, SPEC, _grasps, enveloping_ball_grasp
 
 pytestmark = pytest.mark.skipif(backend_warp.unavailable() is not None, reason="warp-lang / mujoco-warp missing")
@@ -59,3 +60,41 @@ def test_a_batch_larger_than_the_worlds_is_refused():
     sim = backend_warp.WarpSim(scene, 2)
     with pytest.raises(FfcgsError, match="at most 2 grasps"):
         sim._pad(np.zeros((3, 3)))
+
+
+def test_survivors_move_to_fewer_worlds(monkeypatch):
+    """As grasps fail for certain they leave; the rest run on fewer worlds, with the CPU's outcomes."""
+    from ffcgs_jax.physics import backend_cpu
+    from ffcgs_jax.physics import protocols as P
+
+    from test_protocols import CFG, mixed
+
+    monkeypatch.setattr(backend_warp, "MIN_WORLDS", 1)
+    Ts, qs = mixed()
+    scene = physics.scenes(SPEC, BALL, CFG, ("six-dir",))["six-dir"]
+    batch, depth, _ = physics.prepare(scene, BALL, Ts, qs, CFG)
+    sim = backend_warp.WarpSim(scene, 8)
+    warp = P.run_protocol(sim, batch, depth, CFG, "six-dir")
+    cpu = P.run_protocol(backend_cpu.CpuSim(scene, 1), batch, depth, CFG, "six-dir")
+    np.testing.assert_array_equal(warp["success"], cpu["success"])
+    np.testing.assert_array_equal(warp["reason"], cpu["reason"])
+    np.testing.assert_array_equal(np.isnan(warp["move_dir"]), np.isnan(cpu["move_dir"]))
+    assert len(sim._worlds) >= 3 and min(sim._worlds) < 4, sorted(sim._worlds)  # 8 worlds, then fewer
+    assert not warp["flagged"].any()
+
+
+def test_eval_backend_warp_with_a_video(tmp_path, capsys):
+    """`ffcgs eval --backend warp --video`: the batch on warp, the video a CPU replay of the chosen grasp."""
+    from ffcgs_jax.cli import main as cli_main
+    from ffcgs_jax.synthesis import grasp_io
+
+    Ts, qs = _four()
+    path = tmp_path / "g.npz"
+    np.savez(path, object_name=np.array("ball"), wrist_pose=Ts[:2], q=qs[:2], valid=np.ones(2, bool))
+    code = cli_main.main(["eval", str(path), "--backend", "warp", "--protocol", "six-dir", "--friction", "1.0",
+                          "--close-time", "0.2", "--settle-time", "0.1", "--push-time", "0.2",
+                          "--video", str(tmp_path / "v.gif")])
+    out, err = capsys.readouterr()
+    assert code == 0, err
+    assert "backend warp" in out and (tmp_path / "v.gif").stat().st_size > 1000
+    assert grasp_io.load_npz(path)["physics_tested"].all()

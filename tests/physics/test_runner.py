@@ -199,7 +199,7 @@ def test_eval_all_writes_out_and_keeps_the_input(capsys, ball_npz, tmp_path):
     (["missing.npz"], "grasp file not found"),
     (["{npz}", "--protocol", "drop"], "unknown protocol"),
     (["{npz}", "--video", "x.avi"], "--video must end in .gif or .mp4"),
-    (["{npz}", "--backend", "tpu"], "unknown backend"),
+    (["{npz}", "--backend", "tpu"], "unknown physics backend"),
     (["{bare}"], "no wrist_pose or q"),
     (["{anon}"], "pass --object"),
 ])

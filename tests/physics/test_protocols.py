@@ -1,0 +1,110 @@
+"""Early exit in `protocols.run_protocol`: grasps whose failure is certain leave the batch, and nothing else
+changes. Checked against a plain run of every grasp through every segment (the protocol as written before early
+exit), on grasps that pass, slip in some push direction, are dropped, or start in penetration."""
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from ffcgs_jax.physics import backend_cpu
+from ffcgs_jax.physics import protocols as P
+from ffcgs_jax.physics import runner as physics
+
+from test_runner import BALL, FAST, SPEC, _grasps, enveloping_ball_grasp
+
+# pushes strong enough that the weaker grasps slip out within the short pushes
+# (one slips in the first push, +x, and is not pushed further; one in the last, -z)
+CFG = dataclasses.replace(FAST, friction=0.6, accel=25.0, push_time=0.3)
+
+
+def mixed():
+    Ts, qs = _grasps(4)
+    far, q = enveloping_ball_grasp(shift=0.05)  # touches nothing: dropped at once
+    deep, _ = enveloping_ball_grasp(shift=-0.03)  # starts 3 cm inside: penetration
+    return np.concatenate([Ts, far[None], deep[None]]), np.concatenate([qs, q[None], q[None]])
+
+
+def full_run(sim, batch, depth, cfg, protocol):
+    """Every grasp through every segment, judged at the end (lift-shake) or over the whole push (six-dir)."""
+    state = sim.initial(batch)
+    for seg in P.closing(batch, cfg):
+        state = sim.run(state, batch, seg)
+    ref = sim.probe(state, batch)
+    bad = depth > cfg.max_initial_penetration
+    if protocol == "lift-shake":
+        for seg in P.lift_shake(batch, cfg):
+            state = sim.run(state, batch, seg)
+        end = sim.probe(state, batch, np.array([0.0, 0.0, cfg.lift_height]))
+        move = np.linalg.norm(end["rel"] - ref["rel"], axis=1)
+        lost, moved = ~end["touch"], (move >= cfg.max_slip) | end["table"]
+        return dict(success=~(bad | lost | moved), reason=P._reason(bad, lost, moved), move=move)
+    move_dir, rot_dir = np.zeros((len(depth), 6)), np.zeros((len(depth), 6))
+    for k, direction in enumerate(P.DIRECTIONS):
+        def track(s, k=k):
+            p = sim.probe(s, batch)
+            move_dir[:, k] = np.maximum(move_dir[:, k], np.linalg.norm(p["pos"] - ref["pos"], axis=1))
+            rot_dir[:, k] = np.maximum(rot_dir[:, k], P._angle(p["quat"], ref["quat"]))
+        sim.run(state, batch, P.push(batch, cfg, direction, sim.scene.mass), track)
+    lost = ~ref["touch"]
+    moved = (move_dir.max(1) >= cfg.max_move) | (rot_dir.max(1) >= cfg.max_rot_deg)
+    return dict(success=~(bad | lost | moved), reason=P._reason(bad, lost, moved), move_dir=move_dir,
+                rot_dir=rot_dir)
+
+
+@pytest.fixture(scope="module")
+def setup():
+    Ts, qs = mixed()
+    scenes = physics.scenes(SPEC, BALL, CFG, ("lift-shake", "six-dir"))
+    batch, depth, _ = physics.prepare(scenes["six-dir"], BALL, Ts, qs, CFG)
+    return scenes, batch, depth
+
+
+@pytest.mark.parametrize("protocol", ["lift-shake", "six-dir"])
+def test_early_exit_gives_the_full_runs_outcomes(setup, protocol):
+    scenes, batch, depth = setup
+    sim = backend_cpu.CpuSim(scenes[protocol], 1)
+    full = full_run(sim, batch, depth, CFG, protocol)
+    fast = P.run_protocol(sim, batch, depth, CFG, protocol)
+    np.testing.assert_array_equal(fast["success"], full["success"])
+    np.testing.assert_array_equal(fast["reason"], full["reason"])
+    reasons = set(full["reason"].tolist())
+    assert np.isnan(fast["move"][depth > CFG.max_initial_penetration]).all()  # never simulated
+    if protocol == "six-dir":
+        assert {1, 2, 3} <= reasons, reasons  # penetration, drops and slips are all covered
+        tried = ~np.isnan(fast["move_dir"])
+        failed = (full["move_dir"] >= CFG.max_move) | (full["rot_dir"] >= CFG.max_rot_deg)
+        for g in np.flatnonzero(tried.any(1)):
+            first = np.flatnonzero(failed[g])
+            last = first[0] if len(first) else 5  # pushes stop after the first direction that fails
+            assert tried[g].tolist() == [k <= last for k in range(6)], g
+            same = np.arange(6) < (last if len(first) else 6)  # directions run to the end: identical values
+            np.testing.assert_array_equal(fast["move_dir"][g, same], full["move_dir"][g, same])
+            if len(first):  # the failing one stopped once past a bound
+                k = first[0]
+                assert fast["move_dir"][g, k] >= CFG.max_move or fast["rot_dir"][g, k] >= CFG.max_rot_deg
+                assert fast["move_dir"][g, k] <= full["move_dir"][g, k]
+        assert (tried.any(1) & ~tried.all(1)).any()  # some grasp skipped directions
+    else:
+        assert {0, 1, 2} <= reasons, reasons  # passes, penetration and drops
+        ok = full["success"]
+        np.testing.assert_array_equal(fast["move"][ok], full["move"][ok])
+
+
+def test_auto_backend_needs_warp_a_cuda_device_and_enough_grasps(monkeypatch):
+    from ffcgs_jax.physics import backend_warp
+
+    monkeypatch.setattr(backend_warp, "unavailable", lambda: None)
+    monkeypatch.setattr(backend_warp, "no_cuda", lambda: None)
+    monkeypatch.setattr(physics.os, "cpu_count", lambda: 4)
+    assert physics.resolve_backend("auto", 24) == ("warp", None)
+    backend, note = physics.resolve_backend("auto", 23)
+    assert backend == "cpu" and "23 grasps are too few" in note
+    assert physics.resolve_backend("cpu", 10_000) == ("cpu", None)  # asked for: never second-guessed
+    monkeypatch.setattr(backend_warp, "no_cuda", lambda: "no CUDA")
+    backend, note = physics.resolve_backend("auto", 10_000)
+    assert backend == "cpu" and "no CUDA device" in note
+    monkeypatch.setattr(backend_warp, "unavailable", lambda: "missing")
+    assert "not installed" in physics.resolve_backend("auto")[1]
+    with pytest.raises(physics.FfcgsError, match="unknown physics backend 'gpu'"):
+        physics.resolve_backend("gpu")
