@@ -83,14 +83,18 @@ def check_all(obj: Any) -> None:
 
 def load(cls: type[T], path: str | Path) -> T:
     """Read a TOML file into config class `cls` (missing keys keep their defaults)."""
+    return from_dict(cls, read_toml(path))
+
+
+def read_toml(path: str | Path) -> dict:
+    """The tables of a TOML config file, or FfcgsError naming a missing or malformed file."""
     path = Path(path)
     if not path.is_file():
         raise FfcgsError(f"config file not found: {path}")
     try:
-        data = tomllib.loads(path.read_text())
+        return tomllib.loads(path.read_text())
     except tomllib.TOMLDecodeError as e:
         raise FfcgsError(f"config file {path} is not valid TOML: {e}") from None
-    return from_dict(cls, data)
 
 
 def split_config_arg(argv: list[str]) -> tuple[str | None, list[str]]:

@@ -47,6 +47,8 @@ class MetricsConfig:
         d0: E_c offset of eq. (12) in metres: 0 in simulation, 0.005 for the real-robot setting; >= 0.
         a_c, a_q: weights of E_c and E_q in E (eq. 5; paper: 5 and 0.5); >= 0.
         basis_size: K, directions u_k on the 6-D unit sphere for the Q-distance LP; >= 12.
+        contact_tol: a fingertip counts as a contact only when its distance to the mesh is at most this (metres):
+            ε, force closure and E_g use only those. 2 mm, about the SDF grid's own error at 32^3.
     """
 
     mu: float = 0.2
@@ -55,10 +57,11 @@ class MetricsConfig:
     a_c: float = 5.0
     a_q: float = 0.5
     basis_size: int = 64
+    contact_tol: float = 0.002
 
     def check(self) -> None:
         """Raise `FfcgsError` naming the first out-of-range field."""
-        for name in ("mu", "d0", "a_c", "a_q"):
+        for name in ("mu", "d0", "a_c", "a_q", "contact_tol"):
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v < 0:
                 raise FfcgsError(f"metrics.{name} must be a finite number >= 0, got {v!r}")
@@ -395,8 +398,10 @@ def evaluate(
 ) -> dict[str, np.ndarray]:
     """Score grasps from the mesh: ε (Q1), force closure, reference Q-distance and the paper's energies.
 
-    Wrenches are built at the mesh's closest points to the fingertips with the mesh's outward normals, so they
-    are independent of the SDF the optimiser used; both ε and E_g use the same wrenches.
+    Wrenches are built at the mesh's closest points to the touching fingertips (|distance| <= cfg.contact_tol)
+    with the mesh's outward normals, so they are independent of the SDF the optimiser used; both ε and E_g use the
+    same wrenches. A fingertip farther away exerts no force: it contributes no wrench (with none touching, ε = 0
+    and E_g = NaN).
 
     Args:
         mesh: the object in the frame of `contacts_world`, metres.
@@ -410,7 +415,8 @@ def evaluate(
 
     Returns:
         dict of (B,) arrays: epsilon, force_closure (bool), E_g, E, E_c, E_c_cm, E_q, joint_limit_use,
-        penetration (NaN when not given); and contact_dist (B, C) signed distances, metres.
+        penetration (NaN when not given), n_contacts (int: touching fingertips); and contact_dist (B, C) signed
+        distances, metres.
     """
     cfg.check()
     mesh = _mesh(mesh)
@@ -431,17 +437,23 @@ def evaluate(
     basis = sphere_basis(cfg.basis_size)
     eps = np.zeros(b)
     e_g = np.zeros(b)
+    touching = np.abs(signed) <= cfg.contact_tol
     for g in range(b):  # host loop over grasps: Qhull and HiGHS are not batched
-        w = primitive_wrenches(closest[g], normals[g], o, float(r), cfg.mu, cfg.cone_edges)
+        if not touching[g].any():
+            eps[g], e_g[g] = 0.0, np.nan
+            continue
+        w = primitive_wrenches(closest[g][touching[g]], normals[g][touching[g]], o, float(r), cfg.mu, cfg.cone_edges)
         eps[g] = epsilon_q1(w)
         e_g[g] = q_distance_reference(w, basis)
-    out = energies(signed, qq, lo, hi, e_g, cfg)
+    out = energies(signed, qq, lo, hi, np.nan_to_num(e_g), cfg)
+    out["E"][np.isnan(e_g)], out["E_g"][np.isnan(e_g)] = np.nan, np.nan
     out.update(
         epsilon=eps,
         force_closure=eps > 0,
         joint_limit_use=joint_limit_use(qq, lo, hi),
         contact_dist=signed,
         penetration=pen,
+        n_contacts=touching.sum(axis=1),
     )
     return out
 

@@ -15,6 +15,7 @@ Needs `pip install -e ".[warp]"` (warp-lang, mujoco-warp). It runs on a CUDA dev
 the tests use); kernels compile on first use (about a minute) and are cached on disk by Warp.
 """
 
+import ctypes.util
 import dataclasses
 import typing
 
@@ -42,9 +43,14 @@ def unavailable() -> str | None:
 
 def no_cuda() -> str | None:
     """Why warp would run on the CPU here (no CUDA device), or None when it has one."""
-    import warp as wp
+    if ctypes.util.find_library("cuda") is None:  # no driver: starting Warp would only print a warning about it
+        return "no CUDA driver"
+    try:
+        import warp as wp
+    except ImportError:
+        return None  # a CUDA machine without warp-lang: `unavailable` says so
 
-    wp.config.quiet = True  # no start-up banner on stdout: commands print their own results there
+    wp.config.log_level = wp.LOG_WARNING  # no start-up banner on stdout: commands print their own results there
     return None if wp.get_cuda_device_count() > 0 else "Warp finds no CUDA device"
 
 

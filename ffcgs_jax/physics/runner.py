@@ -64,10 +64,10 @@ def resolve_backend(name: str, n: int | None = None) -> tuple[str, str | None]:
         return name, None
     from ffcgs_jax.physics import backend_warp
 
+    if backend_warp.no_cuda():  # first: it starts nothing where there is no driver
+        return "cpu", "physics on the CPU: no CUDA device for MuJoCo Warp"
     if backend_warp.unavailable():
         return "cpu", 'physics on the CPU: MuJoCo Warp is not installed (pip install -e ".[warp]" on a CUDA machine)'
-    if backend_warp.no_cuda():
-        return "cpu", "physics on the CPU: no CUDA device for MuJoCo Warp"
     least = WARP_GRASPS_PER_CORE * (os.cpu_count() or 1)
     if n is not None and n < least:
         return "cpu", f"physics on the CPU: {n} grasps are too few for MuJoCo Warp to pay off here (from {least})"

@@ -187,12 +187,14 @@ def _finish(hand, mesh, target, cfg, out: DeviceOut, synthesis_s, compile_s, obj
     ev = metrics.evaluate(mesh, contacts, q, np.asarray(hand.lower), np.asarray(hand.upper),
                           metrics.MetricsConfig(mu=cfg.energy.mu, cone_edges=cfg.energy.cone_edges, d0=cfg.energy.d0,
                                                 a_c=cfg.energy.a_c, a_q=cfg.energy.a_q,
-                                                basis_size=cfg.energy.basis_size),
+                                                basis_size=cfg.energy.basis_size, contact_tol=cfg.contact_tol),
                           centre=np.asarray(target.centre, np.float64), radius=float(target.radius),
                           penetration=penetration)
     E_c = np.asarray(opt.final.E_c, np.float64)
+    # usable: collision-free, every filter passed, every fingertip touching and force closure with those contacts
     valid = (~np.asarray(out.pose_collides) & ~np.asarray(out.palm_up) & ~np.asarray(out.tips_below_table)
-             & np.asarray(opt.lp_ok) & (penetration <= cfg.max_penetration) & (E_c <= cfg.max_contact_rms))
+             & np.asarray(opt.lp_ok) & (penetration <= cfg.max_penetration) & (E_c <= cfg.max_contact_rms)
+             & (ev["n_contacts"] == contacts.shape[1]) & ev["force_closure"])
     m = hand.spec.mj_model()
     joint_names = np.array([mujoco.mj_id2name(m, mujoco.mjtObj.mjOBJ_JOINT, j) for j in range(m.njnt)])
     arrays = {
@@ -210,6 +212,8 @@ def _finish(hand, mesh, target, cfg, out: DeviceOut, synthesis_s, compile_s, obj
         "force_closure": np.asarray(ev["force_closure"]),
         "E_g_mesh": np.asarray(ev["E_g"], np.float64),
         "E_c_mesh": np.asarray(ev["E_c"], np.float64),
+        "contact_dist": np.asarray(ev["contact_dist"], np.float64),
+        "n_contacts": np.asarray(ev["n_contacts"], np.int64),
         "penetration": penetration,
         "table_penetration": np.asarray(out.table_penetration, np.float64),
         "pose_collides": np.asarray(out.pose_collides),
@@ -231,7 +235,9 @@ def summary_rows(gs: GraspSet) -> list[tuple[str, str]]:
     med = lambda k, s=1.0: f"{np.median(gs[k][v]) * s:.4g}" if v.any() else "-"  # noqa: E731
     return [
         ("grasps (valid / sampled)", f"{int(v.sum())} / {len(v)}"),
-        ("valid with epsilon > 0", f"{int((gs['epsilon'][v] > 0).sum())}"),
+        ("force closure, touching tips (all)", f"{int(gs['force_closure'].sum())} / {len(v)}"),
+        ("all tips touching (all)", f"{int((gs['n_contacts'] == gs['contacts'].shape[1]).sum())} / {len(v)}"
+                                    f"  (within {1000 * gs.config.contact_tol:g} mm)"),
         ("median E", med("E")),
         ("median E_g", med("E_g")),
         ("median E_c (cm)", med("E_c", 100)),

@@ -33,7 +33,9 @@ SCHEMAS = {
                               "wrist_pose": {"type": "array", "items": NUMBERS}, "q": NUMBERS,
                               "contacts": {"type": "array", "items": NUMBERS},
                               **{k: {"type": "number"} for k in ("E", "E_g", "E_c", "E_q", "epsilon",
-                                                                 "penetration")}},
+                                                                 "penetration")},
+                              "force_closure": {"type": "boolean"}, "n_contacts": {"type": "integer"},
+                              "contact_dist": NUMBERS},
                "required": ["index", "valid", "wrist_pose", "q", "contacts", "E", "E_g", "E_c"]},
     "/summary": {"title": "ffcgs.Summary", "type": "object", "additionalProperties": {"type": "string"}},
 }
@@ -83,7 +85,9 @@ def _write_log(f, gs, hand_name: str, summary: list[tuple[str, str]]) -> None:
     for i in range(len(a["valid"])):
         put("/grasp", {"index": i, "valid": bool(a["valid"][i]), "wrist_pose": a["wrist_pose"][i].tolist(),
                        "q": a["q"][i].tolist(), "contacts": a["contacts"][i].tolist(),
-                       **{k: float(a[k][i]) for k in ("E", "E_g", "E_c", "E_q", "epsilon", "penetration")}}, i)
+                       **{k: float(a[k][i]) for k in ("E", "E_g", "E_c", "E_q", "epsilon", "penetration")},
+                       **({"force_closure": bool(a["force_closure"][i]), "n_contacts": int(a["n_contacts"][i]),
+                           "contact_dist": a["contact_dist"][i].tolist()} if "n_contacts" in a else {})}, i)
     put("/summary", dict(summary), 0)
     w.finish()
 

@@ -47,7 +47,7 @@ def make_inputs(tmp_path: Path) -> Path:
     np.savez(tmp_path / "pickled.npz", wrist_pose=np.array([{"a": 1}], dtype=object))
     np.savez(tmp_path / "nokeys.npz", a=np.zeros(3))
     good = _grasps(tmp_path / "good.npz").read_bytes()
-    _grasps(tmp_path / "many.npz", n=64)
+    _grasps(tmp_path / "many.npz", n=512)  # enough closing work that an interrupt lands mid-run
     (tmp_path / "truncated.npz").write_bytes(good[: len(good) // 2])
     (tmp_path / "corrupt_weights.npz").write_bytes(b"PK\x03\x04" + os.urandom(200))
     (tmp_path / "bad.toml").write_text("n = = 3\n")
@@ -215,7 +215,9 @@ def _interrupted(argv: list[str], cwd: Path, after: float) -> subprocess.Complet
 
 @pytest.mark.parametrize("argv,after", [
     (["grasp", "mug", "--out", "new/grasps.npz", "--mcap", "new/run.mcap"], 6.0),
-    (["eval", "many.npz", "--all", "--protocol", "both"], 5.0),
+    # protocol v1's long phases: the default protocol may finish these grasps before the signal arrives
+    (["eval", "many.npz", "--all", "--protocol", "both", "--timestep", "0.002", "--shake-cycles", "6",
+      "--push-time", "2"], 5.0),
     (["sdf", "mug", "--res", "128", "--out", "new/sdf.npz"], 5.0),
     (["dataset", "build", "--objects", "meshes", "--out", "new/d.mcap", "--per-object", "2", "--rotations", "1",
       "--planner.population", "64", "--planner.refine", "8"], 8.0),

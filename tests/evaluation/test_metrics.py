@@ -237,7 +237,9 @@ def test_evaluate_and_summary(sphere):
     contacts = np.stack([_bipyramid() * 1.1, _ring(20.0), _ring(85.0)])
     lo, hi = np.zeros(3), np.ones(3)
     q = np.array([[0.5, 0.5, 0.5], [1.0, 0.5, 0.5], [0.25, 0.5, 0.5]])
-    res = metrics.evaluate(sphere, contacts, q, lo, hi, metrics.MetricsConfig(), penetration=[0.0, 0.001, 0.0])
+    # the bipyramid's tips are 5 mm off the sphere: they count as contacts only with a tolerance above that
+    res = metrics.evaluate(sphere, contacts, q, lo, hi, metrics.MetricsConfig(contact_tol=0.006),
+                           penetration=[0.0, 0.001, 0.0])
     np.testing.assert_array_equal(res["force_closure"], [True, False, True])
     assert res["epsilon"][0] > 0.1 and res["epsilon"][1] == 0.0
     np.testing.assert_allclose(res["E_g"][[0, 2]], 0.0, atol=LP_TOL)
@@ -257,6 +259,26 @@ def test_evaluate_and_summary(sphere):
     assert s2["n_valid"] == 2 and s2["force_closure_share"] == pytest.approx(0.5)
     assert s2["median_penetration"] == pytest.approx(0.0005)
     assert math.isnan(metrics.summary(res, np.zeros(3, bool))["median_E"])
+
+
+def test_only_touching_fingertips_count(sphere):
+    """A fingertip farther from the mesh than contact_tol exerts no force: the same five points around the sphere
+    are force closure when they touch, not when they stand 5 mm or 1 cm off, and a grasp with one tip lifted
+    1 cm is judged on the four that touch."""
+    on = _bipyramid()  # on the surface
+    lift = on.copy()
+    lift[0] *= 1.0 + 0.01 / np.linalg.norm(on[0])  # one tip 1 cm out
+    contacts = np.stack([on, on * 1.1, on * 1.2, lift])
+    q, lo, hi = np.full((4, 1), 0.5), np.zeros(1), np.ones(1)
+    res = metrics.evaluate(sphere, contacts, q, lo, hi)
+    np.testing.assert_array_equal(res["n_contacts"], [5, 0, 0, 4])
+    assert res["force_closure"][0] and not res["force_closure"][1:3].any()
+    assert np.isnan(res["E_g"][1]) and res["epsilon"][1] == 0.0
+    four = metrics.evaluate(sphere, on[None, 1:], q[:1], lo, hi)  # the four touching tips alone
+    assert res["epsilon"][3] == pytest.approx(four["epsilon"][0], abs=1e-12)
+    assert res["E_g"][3] == pytest.approx(four["E_g"][0], abs=1e-12)
+    wide = metrics.evaluate(sphere, contacts, q, lo, hi, metrics.MetricsConfig(contact_tol=0.03))
+    np.testing.assert_array_equal(wide["n_contacts"], [5, 5, 5, 5])  # projected, as before the tolerance existed
 
 
 def test_wilcoxon_paired():

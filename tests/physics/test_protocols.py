@@ -104,6 +104,7 @@ def test_auto_backend_needs_warp_a_cuda_device_and_enough_grasps(monkeypatch):
     monkeypatch.setattr(backend_warp, "no_cuda", lambda: "no CUDA")
     backend, note = physics.resolve_backend("auto", 10_000)
     assert backend == "cpu" and "no CUDA device" in note
+    monkeypatch.setattr(backend_warp, "no_cuda", lambda: None)
     monkeypatch.setattr(backend_warp, "unavailable", lambda: "missing")
     assert "not installed" in physics.resolve_backend("auto")[1]
     with pytest.raises(physics.FfcgsError, match="unknown physics backend 'gpu'"):

@@ -1,0 +1,109 @@
+"""bench/quality.py without synthesis: its bad-input errors, its figures from a fabricated report, and its block
+in a RESULTS file."""
+
+import importlib.util
+import subprocess
+import sys
+
+import pytest
+
+from paths import REPO
+
+SCRIPT = REPO / "bench" / "quality.py"
+
+
+@pytest.fixture(scope="module")
+def quality():
+    spec = importlib.util.spec_from_file_location("bench_quality", SCRIPT)
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+def _record(obj, valid, E, order, tested, physics, force_closure, contact_dist=None, warm=True):
+    n = len(valid)
+    return {"object": obj, "group": "builtin", "row": "cvae", "sampler": "cvae", "warm": warm, "n": n,
+            "valid": valid, "order": order, "tested": tested, "E": E, "E_g": [e / 10 for e in E],
+            "E_c": [0.001] * n, "penetration": [0.002] * n, "epsilon": [0.0] * n, "force_closure": force_closure,
+            "n_contacts": None, "contact_dist": contact_dist, "score": None, "physics": physics,
+            "wall_s": 2.0 if warm else 50.0, "synthesis_s": 0.5, "compile_s": 0.0 if warm else 45.0,
+            "physics_s": 1.0 if tested else 0.0}
+
+
+def _report(contact_dist=None):
+    # object a: valid 0, 2, 3; order by E puts 2 (E 0.3) first; its two best are tested, the first passes both
+    a = _record("a", [True, False, True, True], [0.5, 0.1, 0.3, 0.9], [2, 0, 3, 1], [2, 0],
+                {"lift_shake_success": [True, True], "six_dir_success": [True, False]},
+                [True, True, False, False], contact_dist, warm=False)
+    # object b: nothing valid, so nothing tested and its top-1 fails
+    b = _record("b", [False] * 4, [1.0, 2.0, 3.0, 4.0], [0, 1, 2, 3], [], {}, [False] * 4,
+                None if contact_dist is None else [[0.0] * 5] * 4)
+    conf = {"command": "python bench/quality.py --n 4", "n": 4, "seed": 0, "friction": 0.6,
+            "protocols": ["lift-shake", "six-dir"], "physics_backend": "cpu", "max_grasps_per_object": 2,
+            "contact_tol": 0.002, "group_counts": {"builtin": 2},
+            "machine": {"backend": "cpu", "device": "cpu", "device_count": 1, "cpus": 2, "date": "2026-01-01"}}
+    return {"config": conf, "records": [a, b]}
+
+
+def test_figures_of_a_fabricated_report(quality):
+    (s,) = quality.summarise(_report())
+    assert s["valid"] == (3, 8)
+    assert s["fc"] == (1, 3)  # returned grasps of a are 2, 0, 3: only 0 is in force closure
+    assert s["all_touch"] is None  # no contact_dist: the figure is absent, not zero
+    assert s["E"] == pytest.approx(0.5)  # pooled median of the returned E 0.3, 0.5, 0.9
+    assert s["t2_E"] == pytest.approx((0.45 + 2.5) / 2)  # fewer than 20 poses: mean of all, median over objects
+    assert s["success"] == {"lift-shake": (2, 2), "six-dir": (1, 2)}
+    assert s["both"] == (1, 2) and s["top1"] == (1, 2) and s["top1_none"] == 1
+    assert s["yield"] == (1, 2)  # n / 4 = 1 returned grasp: a has 3, b none
+    assert s["wall_s"] == pytest.approx(2.0)  # the compiling first call is left out
+    table = quality.table(_report())
+    row = next(ln for ln in table.splitlines() if ln.startswith("| cvae |"))
+    cells = [c.strip() for c in row.strip("|").split("|")]
+    assert cells[2] == "37.5 % (3/8)"
+    assert cells[3] == "1 / 3 = 33.3 % (6-79 %)"
+    assert cells[8] == "1 / 2 = 50.0 % (9-91 %)"
+    assert "(cvae: 1)" in table  # the object without a valid grasp is named in the footnote
+    per = quality.per_object_table(_report())
+    assert "| a | cvae | 3/4 | 2 of 3 | 1/2 | yes |" in per
+    assert "| b | cvae | 0/4 | 0 of 0 | 0/0 | no valid grasp |" in per
+
+
+def test_all_tips_touching_uses_the_tolerance(quality):
+    dist = [[0.001, -0.0015, 0.0, 0.0, 0.0], [0.01] * 5, [0.0] * 5, [0.0, 0.0, 0.0, 0.0, -0.003]]
+    (s,) = quality.summarise(_report(dist))
+    assert s["all_touch"] == (2, 3)  # returned 2 and 0 touch within 2 mm; 3 has a tip 3 mm inside
+
+
+def test_results_block_is_replaced_not_duplicated(quality, tmp_path):
+    path = tmp_path / "RESULTS.md"
+    path.write_text("# Results\n\nkept\n")
+    quality.write_results(path, "first")
+    path.write_text(path.read_text() + "after\n")
+    quality.write_results(path, "second")
+    text = path.read_text()
+    assert text.count(quality.BEGIN) == 1 and text.count(quality.END) == 1
+    assert "second" in text and "first" not in text
+    assert text.startswith("# Results\n\nkept\n") and text.endswith("after\n")
+    assert list(tmp_path.iterdir()) == [path]  # no temp file left behind
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["--objects", "builtin,nope"], "--objects: unknown group(s) nope"),
+    (["--objects", "ycb-test", "--ycb", "/no/such/folder"], "--ycb: no such folder"),
+    (["--n", "0"], "argument --n: must be >= 1"),
+    (["--friction", "abc"], "argument --friction: expected a number"),
+    (["--samplers", "cvae,magic"], "unknown sampler(s) magic"),
+])
+def test_bad_input_is_one_line_and_exit_2(quality, capsys, argv, message):
+    with pytest.raises(SystemExit) as e:
+        quality.parse_args(["--objects", "builtin", *argv])
+    assert e.value.code == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("quality.py: error: ") and message in err[0]
+
+
+def test_bad_input_from_the_shell_has_no_traceback():
+    r = subprocess.run([sys.executable, str(SCRIPT), "--objects", "spheres"], capture_output=True, text=True,
+                       timeout=60, cwd=REPO)
+    assert r.returncode == 2 and r.stdout == ""
+    assert r.stderr.startswith("quality.py: error: --objects: unknown group(s) spheres") and "Traceback" not in r.stderr
