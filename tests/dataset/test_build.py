@@ -575,13 +575,19 @@ def test_dataset_info_counts_json_and_gallery(capsys, main_build, objects_dir, t
         assert stats["per_object"][name]["grasps"] == sum(r.num_grasps for r in recs if r.object_name == name)
         assert any(line.split()[:1] == [name] for line in out.splitlines())
 
-    assert all(r.num_grasps > 0 for r in recs)  # so every object gets a picture
+    # the gallery draws each object's first record; one with no grasp (the tiny planner and the strict validity
+    # of issue 18 leave some) is skipped and counted
+    first = {}
+    for r in recs:
+        first.setdefault(r.object_name, r)
+    drawn = sorted(n for n, r in first.items() if r.num_grasps)
+    assert any(n.startswith("proc_") for n in drawn) and any(not n.startswith("proc_") for n in drawn), drawn
     gal = tmp_path / "gallery"
     code, out, err = run_cli(capsys, "dataset", "info", str(path), "--png", str(gal), "--objects", str(objects_dir),
                              "--per-object", "1")
     assert code == 0, err
     pngs = sorted(p.stem for p in gal.glob("*.png"))
-    assert pngs == names
+    assert pngs == drawn
     for p in gal.glob("*.png"):
         with Image.open(p) as im:
             im.verify()
@@ -591,9 +597,9 @@ def test_dataset_info_counts_json_and_gallery(capsys, main_build, objects_dir, t
     gal2 = tmp_path / "gallery2"
     code, out, err = run_cli(capsys, "dataset", "info", str(path), "--png", str(gal2), "--per-object", "1")
     assert code == 0, err
-    procs = [n for n in names if n.startswith("proc_")]
+    procs = [n for n in drawn if n.startswith("proc_")]
     assert sorted(p.stem for p in gal2.glob("*.png")) == procs
-    assert f"no picture for {len(MAIN_OBJECTS)} object(s)" in out and "pass --objects" in out
+    assert f"no picture for {len(names) - len(procs)} object(s)" in out and "pass --objects" in out
     assert all(n in out for n in MAIN_OBJECTS)
 
 
