@@ -36,10 +36,13 @@ METHODS = {
 def object_list(ycb: Path, every_file: bool = False) -> list[tuple[str, str]]:
     """The built-in objects, then the YCB test split (sorted index % 5 == 4), or every file of a folder that holds
     only the test split (`--every-file`, e.g. a copy of it on a machine without ../shared)."""
-    out = [(name, name) for name in objects.names()]
+    return [(name, name) for name in objects.names()] + [(f.stem, str(f)) for f in ycb_test(ycb, every_file)]
+
+
+def ycb_test(ycb: Path, every_file: bool = False) -> list[Path]:
+    """The YCB test split of folder `ycb`: its sorted *.stl with index % 5 == 4, or all of them (`every_file`)."""
     files = sorted(ycb.glob("*.stl")) if ycb.is_dir() else []
-    out += [(f.stem, str(f)) for i, f in enumerate(files) if every_file or i % 5 == 4]
-    return out
+    return [f for i, f in enumerate(files) if every_file or i % 5 == 4]
 
 
 def run(args) -> list[dict]:

@@ -39,7 +39,6 @@ import math
 import os
 import shlex
 import sys
-import tempfile
 import time
 from pathlib import Path
 
@@ -47,10 +46,13 @@ import numpy as np
 from tqdm import tqdm
 
 from ffcgs_jax import config as ffcgs_config
+from ffcgs_jax import files
 from ffcgs_jax.errors import FfcgsError
 from ffcgs_jax.physics.config import BACKENDS, PROTOCOLS, PhysicsConfig
 from ffcgs_jax.physics.protocols import wilson
 from ffcgs_jax.synthesis.config import SAMPLERS, GraspConfig
+
+from eval_grasp import ycb_test  # noqa: E402 - the sibling script's test-split rule
 
 REPO = Path(__file__).resolve().parents[1]
 GROUPS = ("ycb-test", "builtin", "procedural")
@@ -184,8 +186,7 @@ def object_sources(args) -> list[tuple[str, str, object]]:
         if group == "builtin":
             out += [(group, name, name) for name in objects.names()]
         elif group == "ycb-test":
-            files = sorted(Path(args.ycb).glob("*.stl"))
-            out += [(group, f.stem, str(f)) for i, f in enumerate(files) if args.every_file or i % 5 == 4]
+            out += [(group, f.stem, str(f)) for f in ycb_test(Path(args.ycb), args.every_file)]
         else:
             for i in range(args.procedural):
                 name, mesh = procedural.shape(PROCEDURAL_SEED, i)
@@ -442,17 +443,6 @@ def per_object_table(report: dict) -> str:
     return "\n".join(lines) + "\n"
 
 
-def write_atomic(path: Path, text: str) -> None:
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "w") as f:
-            f.write(text)
-        os.replace(tmp, path)  # a reader never sees a half-written file
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-
-
 def write_results(path: Path, block: str) -> None:
     """Replace the text between the quality markers of `path`, or append the block to it."""
     text = path.read_text() if path.exists() else ""
@@ -461,7 +451,7 @@ def write_results(path: Path, block: str) -> None:
         text = text[:text.index(BEGIN)] + body + text[text.index(END) + len(END):]
     else:
         text = (text.rstrip("\n") + "\n\n" if text.strip() else "") + body + "\n"
-    write_atomic(path, text)
+    files.write_text(path, text)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -475,7 +465,7 @@ def main(argv: list[str] | None = None) -> int:
                 report = run(args)
             report["config"]["total_s"] = time.perf_counter() - t0
             if args.json:
-                write_atomic(Path(args.json), json.dumps(report))
+                files.write_text(args.json, json.dumps(report))
     except FfcgsError as e:
         print(f"{PROG}: error: {e}", file=sys.stderr)
         return 2

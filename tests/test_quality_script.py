@@ -14,6 +14,8 @@ SCRIPT = REPO / "bench" / "quality.py"
 
 @pytest.fixture(scope="module")
 def quality():
+    if str(SCRIPT.parent) not in sys.path:  # as when the script runs: its sibling scripts import by name
+        sys.path.insert(0, str(SCRIPT.parent))
     spec = importlib.util.spec_from_file_location("bench_quality", SCRIPT)
     mod = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(mod)

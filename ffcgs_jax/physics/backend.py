@@ -4,9 +4,10 @@ A backend is a simulator over one compiled `PhysicsScene`: `initial(batch)` give
 `run(state, batch, segment, track)` advances them through a `Segment` of open-loop control (calling
 `track(state)` after each `CHUNK` of steps), `probe(state, batch, offset)` reads the object's pose and the
 contacts the success rules need, `take(state, idx)` keeps the grasps at `idx` (grasps whose failure is certain
-leave the batch) and `flagged(state)` says which grasps' simulation the backend cannot vouch for. `protocols.run_protocol` drives any backend through a protocol;
-`backend_cpu.CpuSim` (CPU MuJoCo) and `backend_mjx.MjxSim` (MJX) implement it and import only this module, never
-each other.
+leave the batch) and `flagged(state)` says which grasps' simulation the backend cannot vouch for.
+`protocols.run_protocol` drives any backend through a protocol; `backend_cpu.CpuSim` (CPU MuJoCo),
+`backend_mjx.MjxSim` (MJX) and `backend_warp.WarpSim` (MuJoCo Warp) implement it and import only this module,
+never each other.
 """
 
 import dataclasses
@@ -64,6 +65,12 @@ class Simulator(Protocol):
     def take(self, state: Any, idx: np.ndarray) -> Any: ...
 
     def flagged(self, state: Any) -> np.ndarray: ...
+
+
+def pad_rows(x, n: int) -> np.ndarray:
+    """`x` with its first row repeated up to n rows: backends that keep a fixed batch fill it this way."""
+    x = np.asarray(x)
+    return np.concatenate([x, np.repeat(x[:1], n - len(x), axis=0)]) if len(x) < n else x
 
 
 def mat_to_quat(R: np.ndarray) -> np.ndarray:

@@ -33,7 +33,7 @@ import numpy as np
 
 from ffcgs_jax.errors import FfcgsError
 from ffcgs_jax.hand._mjx import mjx
-from ffcgs_jax.physics.backend import CHUNK, Batch, Segment, pose_hand
+from ffcgs_jax.physics.backend import CHUNK, Batch, Segment, pad_rows, pose_hand
 from ffcgs_jax.physics.scene import PhysicsScene
 
 
@@ -126,11 +126,11 @@ class MjxSim:
         state = state.replace(xfrc_applied=self._put(xfrc, self._dtype), eq_active=self._put(active))
         ctrl = np.zeros((b, CHUNK, m.nu))
         mocap = np.zeros((b, CHUNK, 3))
-        wrist = _pad(batch.wrist_pos, b)
+        wrist = pad_rows(batch.wrist_pos, b)
         for i0 in range(0, seg.n, CHUNK):
             i1 = min(seg.n, i0 + CHUNK)
             c, off = seg.make(i0, i1)
-            ctrl[:, : i1 - i0] = _pad(np.broadcast_to(c, (len(batch.wrist_pos), *c.shape[1:])), b)
+            ctrl[:, : i1 - i0] = pad_rows(np.broadcast_to(c, (len(batch.wrist_pos), *c.shape[1:])), b)
             mocap[:, : i1 - i0] = wrist[:, None] + off[None]
             state = self._call(self._run, self.model, state, self._put(ctrl, self._dtype),
                                self._put(mocap, self._dtype), self._put(i1 - i0, np.int32))
@@ -140,7 +140,7 @@ class MjxSim:
 
     def take(self, state: mjx.Data, idx: np.ndarray) -> mjx.Data:
         """The grasps at `idx` first, padded to the batch's size: a smaller batch would compile the step anew."""
-        rows = _pad(np.asarray(idx), len(state.qpos))
+        rows = pad_rows(np.asarray(idx), len(state.qpos))
         return jax.tree_util.tree_map(lambda x: x[rows], state)
 
     def flagged(self, state: mjx.Data) -> np.ndarray:
@@ -150,13 +150,8 @@ class MjxSim:
         """Object pose (world, and position in the hand's root frame), table and hand contact of each state, with
         the wrist target moved by `offset` (3,)."""
         n = len(batch.wrist_pos)
-        mocap = self._put(_pad(batch.wrist_pos + np.asarray(offset), len(state.qpos)), self._dtype)
+        mocap = self._put(pad_rows(batch.wrist_pos + np.asarray(offset), len(state.qpos)), self._dtype)
         out = self._call(self._probe, self.model, state, mocap, self.scene.obj_body, self.scene.root_body,
                          *self._masks)
         return {k: np.asarray(v, bool if k in ("table", "touch") else np.float64)[:n] for k, v in out.items()}
 
-
-def _pad(x: np.ndarray, n: int) -> np.ndarray:
-    """`x` with its first row repeated up to n rows."""
-    x = np.asarray(x)
-    return np.concatenate([x, np.repeat(x[:1], n - len(x), axis=0)]) if len(x) < n else x

@@ -23,7 +23,7 @@ import mujoco
 import numpy as np
 
 from ffcgs_jax.errors import FfcgsError
-from ffcgs_jax.physics.backend import CHUNK, Batch, Segment, pose_hand
+from ffcgs_jax.physics.backend import CHUNK, Batch, Segment, pad_rows, pose_hand
 from ffcgs_jax.physics.scene import PhysicsScene
 
 MAX_WORLDS = 8192  # grasps simulated at once: 8192 worlds of the mug scene fit an H100 with room to spare
@@ -163,9 +163,7 @@ class WarpSim:
     # state <-> Data
 
     def _pad(self, x: np.ndarray, size: int | None = None) -> np.ndarray:
-        x = np.asarray(x)
-        size = size or self._size(len(x))
-        return np.concatenate([x, np.repeat(x[:1], size - len(x), axis=0)]) if len(x) < size else x
+        return pad_rows(x, size or self._size(len(x)))
 
     def _save(self, w: _Worlds, n: int, overflow: np.ndarray) -> WarpState:
         return WarpState({f: self._wp.clone(getattr(w.d, f)) for f in _STATE_FIELDS}, n, overflow)

@@ -161,8 +161,9 @@ def evaluate(spec: HandSpec, mesh: trimesh.Trimesh, wrist_pose, q, cfg: PhysicsC
     CPU runs the grasps in groups of `GROUP_PER_THREAD` x threads, so `progress(k)` (k grasps done) ticks often;
     MJX runs them as one batch, warp in batches of up to `backend_warp.MAX_WORLDS` worlds; grasps whose warp
     contacts or constraints overflowed their buffers are run again on the CPU (`physics_rerun_cpu` marks them).
-    Returns flat per-grasp arrays for an npz: initial_penetration, palm_contact and, per protocol p (with '-' written '_'), p_success, p_reason (index into protocols.REASONS), p_move (m), p_rot
-    (degrees) and for six-dir six_dir_move_dir, six_dir_rot_dir (B, 6)."""
+    Returns flat per-grasp arrays for an npz: initial_penetration, palm_contact and, per protocol p (with '-'
+    written '_'), p_success, p_reason (index into protocols.REASONS), p_move (m), p_rot (degrees) and for six-dir
+    six_dir_move_dir, six_dir_rot_dir (B, 6)."""
     cfg.check()
     protocols = tuple(protocols)
     for p in protocols:
