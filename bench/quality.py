@@ -7,7 +7,8 @@
 
 Objects (`--objects`, comma list of groups): `ycb-test` (the YCB test split: the sorted *.stl of `--ycb` with
 index % 5 == 4, or every file with `--every-file`), `builtin` (the package's meshes) and `procedural` (`--procedural`
-shapes of `geometry.procedural` with seed 1000, not a training seed). Rows: every sampler of `--samplers` under
+shapes of `geometry.procedural` with seed 1000, not a training seed); `ycb-train` (the other YCB files: what
+`bench/fit_score.py` fits the score on, never the test split). Rows: every sampler of `--samplers` under
 every `--config` (a GraspConfig TOML as `ffcgs grasp --config` reads it, or `default` for the package defaults;
 label `sampler` for the defaults, `STEM:sampler` for a file); `--n`, `--seed` and the sampler always come from the
 command line.
@@ -55,7 +56,7 @@ from ffcgs_jax.synthesis.config import SAMPLERS, GraspConfig
 from eval_grasp import ycb_test  # noqa: E402 - the sibling script's test-split rule
 
 REPO = Path(__file__).resolve().parents[1]
-GROUPS = ("ycb-test", "builtin", "procedural")
+GROUPS = ("ycb-test", "builtin", "procedural", "ycb-train")
 PROCEDURAL_SEED = 1000  # the training shapes use other seeds: these are unseen
 TABLE2_K = 20  # the paper's Table II averages the 20 lowest-energy grasps per object
 BEGIN, END = "<!-- quality:begin -->", "<!-- quality:end -->"
@@ -135,8 +136,9 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     if unknown or not groups:
         ap.error(f"--objects: unknown group(s) {', '.join(unknown) or '(none given)'}; groups: {', '.join(GROUPS)}")
     args.groups = list(dict.fromkeys(groups))
-    if "ycb-test" in groups and not Path(args.ycb).is_dir():
-        ap.error(f"--ycb: no such folder: {args.ycb} (needed by the ycb-test group)")
+    for g in ("ycb-test", "ycb-train"):
+        if g in groups and not Path(args.ycb).is_dir():
+            ap.error(f"--ycb: no such folder: {args.ycb} (needed by the {g} group)")
     samplers = _split(args.samplers)
     bad = [s for s in samplers if s not in SAMPLERS]
     if bad or not samplers:
@@ -187,6 +189,9 @@ def object_sources(args) -> list[tuple[str, str, object]]:
             out += [(group, name, name) for name in objects.names()]
         elif group == "ycb-test":
             out += [(group, f.stem, str(f)) for f in ycb_test(Path(args.ycb), args.every_file)]
+        elif group == "ycb-train":  # what scores and thresholds are fitted on, never the test split
+            test = set(ycb_test(Path(args.ycb)))
+            out += [(group, f.stem, str(f)) for f in sorted(Path(args.ycb).glob("*.stl")) if f not in test]
         else:
             for i in range(args.procedural):
                 name, mesh = procedural.shape(PROCEDURAL_SEED, i)
@@ -220,13 +225,15 @@ def run_job(hand, mesh, name: str, cfg: GraspConfig, args) -> dict:
     if len(tested):
         t1 = time.perf_counter()
         res = runner.evaluate(hand.spec, mesh, gs["wrist_pose"][tested], gs["q"][tested],
-                              PhysicsConfig(friction=args.friction, backend=args.backend), args.protocol_list)
+                              PhysicsConfig(friction=args.friction, backend=args.backend), args.protocol_list,
+                              squeeze_dir=gs["squeeze_dir"][tested])
         physics_s = time.perf_counter() - t1
         physics = {k: np.asarray(v).tolist() for k, v in res.items()}
     return {
         "n": int(len(valid)), "valid": valid.tolist(), "order": order.tolist(), "tested": tested.tolist(),
         **{k: np.asarray(a[k], float).tolist() for k in ("E", "E_g", "E_c", "penetration", "epsilon")},
-        **{k: _opt(a, k) for k in ("force_closure", "n_contacts", "contact_dist", "score")},
+        **{k: _opt(a, k) for k in ("force_closure", "n_contacts", "contact_dist", "score", "E_m", "support_min",
+                                   "E_q", "table_penetration")},
         "physics": physics, "wall_s": wall, "synthesis_s": float(a["synthesis_s"]),
         "compile_s": float(a["compile_s"]), "physics_s": physics_s,
     }
@@ -282,6 +289,8 @@ def run(args) -> dict:
         rec = {"object": name, "group": group, "row": label, "sampler": cfg.sampler, "warm": label in seen, **rec}
         seen.add(label)
         records.append(rec)
+        if args.json:  # after every job: a long run cut short keeps what it measured
+            files.write_text(args.json, json.dumps({"config": conf, "records": records}))
     return {"config": conf, "records": records}
 
 

@@ -321,7 +321,9 @@ def _validate(gs, spec, mesh, cmd: GraspCmd):
     if len(idx) == 0:
         return gs.select(idx), [("kept after --validate", "0 of 0 valid grasps")]
     t0 = time.perf_counter()
-    res, backend = _run_physics(spec, mesh, gs["wrist_pose"][idx], gs["q"][idx], cmd.physics, protocols)
+    squeeze = gs.arrays.get("squeeze_dir")
+    res, backend = _run_physics(spec, mesh, gs["wrist_pose"][idx], gs["q"][idx], cmd.physics, protocols,
+                                None if squeeze is None else squeeze[idx])
     passed = np.logical_and.reduce([res[physics_protocols.result_key(p, "success")] for p in protocols])
     kept = gs.select(idx[passed])
     for k, v in res.items():
@@ -332,15 +334,17 @@ def _validate(gs, spec, mesh, cmd: GraspCmd):
     return kept, rows
 
 
-def _run_physics(spec, mesh, wrist_pose, q, cfg: PhysicsConfig, protocols) -> tuple[dict, str]:
-    """The physics results and the backend that ran them (`cfg.backend` resolved; a fallback is said on stderr)."""
+def _run_physics(spec, mesh, wrist_pose, q, cfg: PhysicsConfig, protocols, squeeze_dir=None) -> tuple[dict, str]:
+    """The physics results and the backend that ran them (`cfg.backend` resolved; a fallback is said on stderr).
+    `squeeze_dir`: the grasps' own (a grasp file's), else the physics test computes it."""
     from tqdm import tqdm
 
     from ffcgs_jax.physics import runner as physics
 
     backend = physics_backend(cfg, len(q))
     with tqdm(total=len(q) * len(protocols), desc="physics", unit="grasp", disable=None, leave=False) as bar:
-        return physics.evaluate(spec, mesh, wrist_pose, q, cfg, protocols, backend, progress=bar.update), backend
+        return physics.evaluate(spec, mesh, wrist_pose, q, cfg, protocols, backend, progress=bar.update,
+                                squeeze_dir=squeeze_dir), backend
 
 
 def physics_backend(cfg: PhysicsConfig, n: int) -> str:
@@ -422,7 +426,10 @@ def run_eval(cmd: EvalCmd) -> None:
     if len(idx) == 0:
         raise FfcgsError(f"{cmd.grasps} has no valid grasps to test (use --all to test them anyway)")
     t0 = time.perf_counter()
-    res, backend = _run_physics(spec, mesh, data["wrist_pose"][idx], data["q"][idx], cmd.physics, protocols)
+    # files from before squeeze_dir was recorded: the physics test derives it from the fingertips near the mesh
+    squeeze = data["squeeze_dir"] if "squeeze_dir" in data else None
+    res, backend = _run_physics(spec, mesh, data["wrist_pose"][idx], data["q"][idx], cmd.physics, protocols,
+                                None if squeeze is None else squeeze[idx])
     seconds = time.perf_counter() - t0
     n = len(valid)
     for k, v in res.items():  # grasps not tested get NaN / False / reason -1
@@ -450,7 +457,7 @@ def run_eval(cmd: EvalCmd) -> None:
             raise FfcgsError(f"--video-index must be in [0, {n - 1}], got {pick}")
         scene = physics.scenes(spec, mesh, cmd.physics, protocols[:1])[protocols[0]]
         batch, _, _ = physics.prepare(scene, mesh, data["wrist_pose"][pick:pick + 1], data["q"][pick:pick + 1],
-                                      cmd.physics)
+                                      cmd.physics, None if squeeze is None else squeeze[pick:pick + 1])
         frames = physics_video.record(scene, batch, 0, cmd.physics, protocols[0], cmd.video,
                                       title=f"{protocols[0]}  grasp {pick}")
         print(f"wrote {cmd.video} (grasp {pick}, {protocols[0]}, {frames} frames)")

@@ -415,8 +415,8 @@ def evaluate(
 
     Returns:
         dict of (B,) arrays: epsilon, force_closure (bool), E_g, E, E_c, E_c_cm, E_q, joint_limit_use,
-        penetration (NaN when not given), n_contacts (int: touching fingertips); and contact_dist (B, C) signed
-        distances, metres.
+        penetration (NaN when not given), n_contacts (int: touching fingertips); contact_dist (B, C) signed
+        distances, metres, and normals (B, C, 3), the mesh's outward normals at the closest points.
     """
     cfg.check()
     mesh = _mesh(mesh)
@@ -452,10 +452,30 @@ def evaluate(
         force_closure=eps > 0,
         joint_limit_use=joint_limit_use(qq, lo, hi),
         contact_dist=signed,
+        normals=normals,
         penetration=pen,
         n_contacts=touching.sum(axis=1),
     )
     return out
+
+
+def squeeze_direction(jac, normals, near) -> np.ndarray:
+    """The channel direction that presses the `near` fingertips into the surface: sum_i J_i^T (-n_i), scaled so its
+    largest channel moves by 1 (0 where no fingertip is near). The physics test closes the servos to q + squeeze x
+    this direction; a grasp file carries it (`squeeze_dir`) so a robot presses the same way.
+
+    Args:
+        jac: (B, C, 3, Q) fingertip contact-point Jacobians with respect to the channels, metres per radian.
+        normals: (B, C, 3) outward unit surface normals at the fingertips' closest mesh points.
+        near: (B, C) bool, the fingertips that press.
+
+    Returns:
+        (B, Q) directions, max |entry| 1 or all zero.
+    """
+    direction = np.einsum("bkiq,bki->bq", np.asarray(jac, np.float64),
+                          -np.asarray(normals, np.float64) * np.asarray(near, bool)[..., None])
+    scale = np.abs(direction).max(axis=1, keepdims=True)
+    return np.where(scale > 1e-12, direction / np.maximum(scale, 1e-12), 0.0)
 
 
 def summary(results: dict, valid=None) -> dict[str, float | int]:

@@ -34,6 +34,9 @@ class Hand:
         palm_normal: (3,) unit palm normal in the root frame.
         sphere_body, sphere_pos, sphere_radius: collision spheres, each rigid in one body (local position).
         box_vertices: (V, 3) corners of every collision geom's box at q = 0, in the root frame.
+        tip_body, tip_pos, tip_radius: (C,), (C, T, 3), (C, T): per contact site, the spheres of its body's collision
+            geoms (local positions, radii) and the site itself (radius 0, also the padding): where a fingertip can
+            touch (`fingertip_spheres`).
         contact_site_ids, palm_site_id, tetrahedron_site_ids: static MuJoCo site ids.
     """
 
@@ -48,6 +51,9 @@ class Hand:
     sphere_pos: Float[Array, "S 3"]
     sphere_radius: Float[Array, " S"]
     box_vertices: Float[Array, "V 3"]
+    tip_body: jax.Array
+    tip_pos: Float[Array, "C T 3"]
+    tip_radius: Float[Array, "C T"]
     contact_site_ids: tuple[int, ...]
     palm_site_id: int
     tetrahedron_site_ids: tuple[int, ...]
@@ -71,7 +77,7 @@ class Hand:
 
 
 _DATA = ("model", "coupling", "lower", "upper", "root_inv", "palm_normal", "sphere_body", "sphere_pos", "sphere_radius",
-         "box_vertices")
+         "box_vertices", "tip_body", "tip_pos", "tip_radius")
 _META = ("spec", "contact_site_ids", "palm_site_id", "tetrahedron_site_ids")
 
 
@@ -117,6 +123,7 @@ def load_hand(source: str | Path = "svh") -> Hand:
     root_inv = np.linalg.inv(T_root)
     body, pos, rad = _collision_spheres(m)
     site = lambda n: mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_SITE, n)  # noqa: E731
+    tip_body, tip_pos, tip_rad = _tip_candidates(m, [site(s) for s in spec.contact_sites], body, pos, rad)
     return Hand(
         spec=spec,
         model=mjx.put_model(m),
@@ -129,6 +136,9 @@ def load_hand(source: str | Path = "svh") -> Hand:
         sphere_pos=jnp.asarray(pos, dtype),
         sphere_radius=jnp.asarray(rad, dtype),
         box_vertices=jnp.asarray(_box_vertices(m, root_inv), dtype),
+        tip_body=jnp.asarray(tip_body, jnp.int32),
+        tip_pos=jnp.asarray(tip_pos, dtype),
+        tip_radius=jnp.asarray(tip_rad, dtype),
         contact_site_ids=tuple(site(s) for s in spec.contact_sites),
         palm_site_id=site(spec.palm_site),
         tetrahedron_site_ids=tuple(site(s) for s in spec.tetrahedron_sites),
@@ -201,6 +211,14 @@ def collision_spheres(
     rot = frames.body_rot[hand.sphere_body]
     centres = jnp.einsum("sij,sj->si", rot, hand.sphere_pos) + frames.body_pos[hand.sphere_body]
     return centres, hand.sphere_radius
+
+
+def fingertip_spheres(hand: Hand, frames: HandFrames) -> tuple[Float[Array, "C T 3"], Float[Array, "C T"]]:
+    """World centres and radii of the candidate spheres of each fingertip (`Hand.tip_pos`): the contact point of
+    fingertip i is the skin point of its sphere nearest to the object (`energy.fingertip_contacts`)."""
+    rot = frames.body_rot[hand.tip_body]
+    centres = jnp.einsum("cij,ctj->cti", rot, hand.tip_pos) + frames.body_pos[hand.tip_body][:, None, :]
+    return centres, hand.tip_radius
 
 
 def box_vertices(hand: Hand, wrist_pose: Float[Array, "4 4"]) -> Float[Array, "V 3"]:
@@ -295,6 +313,20 @@ def _collision_spheres(m: mujoco.MjModel) -> tuple[np.ndarray, np.ndarray, np.nd
         pos.append(local @ R.reshape(3, 3).T + m.geom_pos[g])
         rad += [r] * len(local)
     return np.array(body), np.concatenate(pos), np.array(rad)
+
+
+def _tip_candidates(m: mujoco.MjModel, sites: list[int], body: np.ndarray, pos: np.ndarray, rad: np.ndarray
+                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per contact site: its body, and (local position, radius) of the site (radius 0) and of every collision sphere
+    of that body, padded with the site to a common count."""
+    cands = []
+    for s in sites:
+        b = m.site_bodyid[s]
+        cands.append([(m.site_pos[s], 0.0)] + [(pos[i], rad[i]) for i in np.flatnonzero(body == b)])
+    width = max(len(c) for c in cands)
+    cands = [c + [c[0]] * (width - len(c)) for c in cands]
+    return (np.array([m.site_bodyid[s] for s in sites]), np.array([[p for p, _ in c] for c in cands]),
+            np.array([[r for _, r in c] for c in cands]))
 
 
 def _box_vertices(m: mujoco.MjModel, root_inv: np.ndarray) -> np.ndarray:

@@ -102,13 +102,19 @@ def check_inputs(scene: PhysicsScene, wrist_pose, q) -> tuple[np.ndarray, np.nda
 
 
 
-def prepare(scene: PhysicsScene, mesh: trimesh.Trimesh, wrist_pose, q, cfg: PhysicsConfig
+def prepare(scene: PhysicsScene, mesh: trimesh.Trimesh, wrist_pose, q, cfg: PhysicsConfig, squeeze_dir=None
             ) -> tuple[Batch, np.ndarray, np.ndarray]:
     """Servo start/target per grasp, the initial hand-object penetration depth (B,) at q (MuJoCo contact depth,
-    metres, >= 0) and whether the palm touches the object at q (B,)."""
-    from ffcgs_jax.evaluation.metrics import mesh_contacts
+    metres, >= 0) and whether the palm touches the object at q (B,). `squeeze_dir` (B, Q), e.g. a grasp file's,
+    replaces the squeeze direction computed here from the fingertips within `cfg.contact_band`."""
+    from ffcgs_jax.evaluation.metrics import mesh_contacts, squeeze_direction
 
     T, qq = check_inputs(scene, wrist_pose, q)
+    if squeeze_dir is not None:
+        squeeze_dir = np.asarray(squeeze_dir, np.float64)
+        if squeeze_dir.shape != qq.shape or not np.isfinite(squeeze_dir).all():
+            raise FfcgsError(f"squeeze_dir must be finite with shape {qq.shape} (one row per grasp), got "
+                             f"{squeeze_dir.shape}")
     m = scene.model
     d = mujoco.MjData(m)
     b = len(T)
@@ -126,11 +132,11 @@ def prepare(scene: PhysicsScene, mesh: trimesh.Trimesh, wrist_pose, q, cfg: Phys
             mujoco.mj_jacSite(m, d, jp, None, int(s))
             jac[g, k] = jp[:, dof] @ scene.coupling
             tips[g, k] = d.site_xpos[s]
-    _, normals, signed = mesh_contacts(mesh, tips)
-    near = (np.abs(signed) <= cfg.contact_band)[..., None]
-    direction = np.einsum("bkiq,bki->bq", jac, -normals * near)
-    scale = np.abs(direction).max(axis=1, keepdims=True)
-    direction = np.where(scale > 1e-12, direction / np.maximum(scale, 1e-12), 0.0)
+    if squeeze_dir is None:
+        _, normals, signed = mesh_contacts(mesh, tips)
+        direction = squeeze_direction(jac, normals, np.abs(signed) <= cfg.contact_band)
+    else:
+        direction = squeeze_dir
     target = np.clip(qq + cfg.squeeze * direction, scene.lower, scene.upper)
     start = (1.0 - cfg.open_fraction) * qq
     return Batch(T[:, :3, 3].copy(), quat, start, target), depth, palm
@@ -154,9 +160,10 @@ def _contact_state(scene: PhysicsScene, d: mujoco.MjData) -> tuple[float, bool]:
 
 def evaluate(spec: HandSpec, mesh: trimesh.Trimesh, wrist_pose, q, cfg: PhysicsConfig = PhysicsConfig(),
              protocols=PROTOCOLS, backend: str | None = None, table_z: float | None = None,
-             progress: Callable[[int], None] | None = None) -> dict[str, np.ndarray]:
+             progress: Callable[[int], None] | None = None, squeeze_dir=None) -> dict[str, np.ndarray]:
     """Run the physics test on grasps (wrist_pose (B, 4, 4) object frame, q (B, Q) channels) on `backend`
-    (default `cfg.backend`; "auto" is resolved by `resolve_backend`).
+    (default `cfg.backend`; "auto" is resolved by `resolve_backend`). `squeeze_dir` (B, Q): the grasps' own squeeze
+    directions (a grasp file's `squeeze_dir`); default: computed from the fingertips near the mesh (`prepare`).
 
     CPU runs the grasps in groups of `GROUP_PER_THREAD` x threads, so `progress(k)` (k grasps done) ticks often;
     MJX runs them as one batch, warp in batches of up to `backend_warp.MAX_WORLDS` worlds; grasps whose warp
@@ -176,7 +183,7 @@ def evaluate(spec: HandSpec, mesh: trimesh.Trimesh, wrist_pose, q, cfg: PhysicsC
     built = scenes(spec, mesh, cfg, protocols, table_z)
     # the scenes differ only in gravity, table and the hold weld, none of which the hand-object contacts, the
     # fingertip Jacobians or the squeeze target depend on: prepare once
-    batch, depth, palm = prepare(built[protocols[0]], mesh, wrist_pose, q, cfg)
+    batch, depth, palm = prepare(built[protocols[0]], mesh, wrist_pose, q, cfg, squeeze_dir)
     out: dict[str, np.ndarray] = {"initial_penetration": depth, "palm_contact": palm}
     if backend == "warp":  # the others have no buffers to overflow
         out["physics_rerun_cpu"] = np.zeros(len(depth), bool)

@@ -23,6 +23,15 @@ class EnergyConfig:
             gauge then stays within a few per cent of the Euclidean distance while the LP stays small).
         d0: E_c offset: 0 as in the paper's simulation, 0.005 for its real-robot setting (a slight squeeze).
         a_c, a_q: weights of E_c (metres) and E_q (paper: 5 and 0.5).
+        margin: delta, the force-closure margin the descent aims for: E_m (`quality.support_margin`) is 0 once the
+            wrench hull's support reaches delta in each of `margin_dirs` directions searched where the hull is thin
+            (Ferrari-Canny epsilon >= delta implies it). Dimensionless, like E_g (forces of unit cone edges, torques
+            divided by the object radius).
+        a_m: weight of E_m; 0 leaves it out (the paper: E_g alone, whose optimum is the hull's boundary).
+            Defaults delta 0.1, a_m 3: chosen on the YCB training objects among a_m 0, (1, 0.03), (3, 0.05),
+            (3, 0.1): same physics success (49 %), valid share 44 -> 59 %, median E_c 0.81 -> 0.18 mm
+            (bench/RESULTS.md, "Grasp quality").
+        margin_dirs, margin_steps: directions the margin searches, and their search steps per descent step.
         a_pen: weight of the whole-hand collision penalty (`filters.penetration_penalty`, summed squared depths in
             metres^2, so 1e4 makes a 1 cm deep link cost 1); the paper has none (0): it penalises fingertips only.
         normal_grad: let gradients flow through the contact normals. The paper holds them fixed (dn/dc = 0), which
@@ -42,6 +51,10 @@ class EnergyConfig:
     d0: float = 0.0
     a_c: float = 5.0
     a_q: float = 0.5
+    margin: float = 0.1
+    a_m: float = 3.0
+    margin_dirs: int = 16
+    margin_steps: int = 4
     a_pen: float = 1e4
     normal_grad: bool = True
     lp_solver: str = "jax"
@@ -55,7 +68,10 @@ class EnergyConfig:
         check_range("energy.cone_edges", self.cone_edges, 3, 64)
         check_range("energy.basis_size", self.basis_size, 12, 1024)
         check_range("energy.d0", self.d0, -0.05, 0.05)
-        for name in ("a_c", "a_q", "a_pen"):
+        check_range("energy.margin", self.margin, 0.0, 1.0)
+        check_integer("energy.margin_dirs", self.margin_dirs, 1, 1024)
+        check_integer("energy.margin_steps", self.margin_steps, 0, 1000)
+        for name in ("a_c", "a_q", "a_m", "a_pen"):
             check_range(f"energy.{name}", getattr(self, name), 0.0, 1e6)
 
 
@@ -200,6 +216,9 @@ class GraspConfig:
         contact_tol: a fingertip touches the object when the mesh is within this distance (metres) of its contact
             point; only touching fingertips count for epsilon, force_closure, E_g_mesh and n_contacts, and a valid
             grasp has every fingertip touching and force closure with them.
+        squeeze: radians past q, along `squeeze_dir` (sum_i J_i^T (-n_i) over the touching fingertips, largest
+            channel 1), of the servo target a grasp is executed with: `q_squeeze` in the grasp file. 0.2, as the
+            physics test's `physics.squeeze`, which presses with the file's `squeeze_dir` too.
         devices: local accelerators the batch of poses is split over (`jax.sharding`, each device optimises its
             share independently): 0 = all local devices of JAX's default backend, k = the first k. The results
             do not depend on it; a batch that does not divide evenly is padded.
@@ -211,6 +230,7 @@ class GraspConfig:
     max_penetration: float = 0.01
     max_contact_rms: float = 0.01
     contact_tol: float = 0.002
+    squeeze: float = 0.2
     devices: int = 0
     sdf: SDFConfig = SDFConfig()
     energy: EnergyConfig = EnergyConfig()
@@ -228,4 +248,5 @@ class GraspConfig:
         if not 0 <= self.max_contact_rms <= 1:
             raise FfcgsError(f"max_contact_rms must be in [0, 1] m, got {self.max_contact_rms}")
         check_range("contact_tol", self.contact_tol, 0.0, 1.0)
+        check_range("squeeze", self.squeeze, 0.0, 3.0)
         check_integer("devices", self.devices, 0, 4096)

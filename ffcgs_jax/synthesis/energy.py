@@ -1,4 +1,5 @@
-"""The grasp energy E(q) for one wrist pose: E_g + a_c E_c + a_q E_q (+ a_pen P), eq. 5, 12, 13 of the paper."""
+"""The grasp energy E(q) for one wrist pose: E_g + a_c E_c + a_q E_q (eq. 5, 12, 13 of the paper), + a_m E_m (the
+force-closure margin, `quality.support_margin`) + a_pen P (the whole-hand penetration penalty)."""
 
 from typing import NamedTuple
 
@@ -7,6 +8,7 @@ import jax.numpy as jnp
 from jaxtyping import Array, Bool, Float, Int
 
 from ffcgs_jax.geometry import sdf
+from ffcgs_jax.hand import kinematics as K
 from ffcgs_jax.hand.kinematics import Hand, forward_kinematics
 from ffcgs_jax.synthesis import filters as F
 from ffcgs_jax.synthesis import quality
@@ -34,10 +36,13 @@ class Terms(NamedTuple):
     E_g: Float[Array, ""]
     E_c: Float[Array, ""]
     E_q: Float[Array, ""]
+    E_m: Float[Array, ""]
+    support_min: Float[Array, ""]  # min of the wrench support over the margin's directions (>= epsilon); NaN if a_m 0
     P: Float[Array, ""]
     lp_ok: Bool[Array, ""]
     contacts: Float[Array, "C 3"]
     lp_basis: Int[Array, " 7"]  # the LP's final basis ("jax" solver; -1s otherwise): the next step's warm start
+    margin_dirs: Float[Array, "M 6"]  # the margin's searched directions: the next step's start
 
 
 def make_target(grid: sdf.GradientSDF) -> Target:
@@ -57,22 +62,56 @@ def joint_energy(hand: Hand, q: Float[Array, " Q"]) -> Float[Array, ""]:
     return jnp.mean(((q - hand.q_mean) / hand.q_range) ** 2)
 
 
+def fingertip_contacts(hand: Hand, grid: sdf.GradientSDF, frames
+                       ) -> tuple[Float[Array, "C 3"], Float[Array, " C"], Float[Array, "C 3"], Float[Array, "C 3"]]:
+    """Where each fingertip touches: among its candidate spheres (`kinematics.fingertip_spheres`: the fingertip
+    link's collision spheres and the contact site), the one whose skin is nearest to the surface.
+
+    Why not the contact site: a site is one point of the fingertip, while the fingertip link's collision geometry
+    reaches past it (the SVH's distal capsules extend 8.6 mm beyond their sites, which lie 1 mm under the skin), so
+    a descent that puts the site on the surface pushes the rest of the fingertip into the object: 3.4-4.2 mm deep
+    on the built-in objects. The skin point is what touches in physics.
+
+    Returns:
+        points (C, 3): the skin points, centre - radius x normal; gaps (C,): signed distances of the skin to the
+        surface (metres; negative: the fingertip penetrates), differentiable like `sdf.distance`; normals (C, 3):
+        the SDF's outward normal at those spheres' centres; centres (C, 3) of the chosen spheres.
+    """
+    centres, radii = K.fingertip_spheres(hand, frames)
+    C, T = radii.shape
+    flat = centres.reshape(C * T, 3)
+    gap = (sdf.distance(grid, flat).reshape(C, T) - radii)
+    k = jnp.argmin(gap, axis=1)
+    pick = lambda a: jnp.take_along_axis(a, k.reshape((C, 1) + (1,) * (a.ndim - 2)), axis=1)[:, 0]  # noqa: E731
+    centre, r = pick(centres), pick(radii)
+    _, n = sdf.query(grid, centre)
+    return centre - r[:, None] * n, pick(gap), n, centre
+
+
 def energy(
     hand: Hand, target: Target, wrist_pose: Float[Array, "4 4"], q: Float[Array, " Q"], cfg: EnergyConfig,
-    lp_basis: Int[Array, " 7"] | None = None,
+    lp_basis: Int[Array, " 7"] | None = None, margin_dirs: Float[Array, "M 6"] | None = None,
 ) -> tuple[Float[Array, ""], Terms]:
-    """E and its parts for one wrist pose and channel vector (differentiable in q). `lp_basis`: a warm start for
-    the Q-distance LP (`Terms.lp_basis` of a nearby call)."""
+    """E and its parts for one wrist pose and channel vector (differentiable in q). `lp_basis`, `margin_dirs`: warm
+    starts for the Q-distance LP and the margin's direction search (`Terms.lp_basis`, `Terms.margin_dirs` of a
+    nearby call)."""
     frames = forward_kinematics(hand, wrist_pose, q)  # one MJX pass (and one backward) for contacts and spheres
-    c = frames.contacts
-    _, n = sdf.query(target.sdf, c)
-    if not cfg.normal_grad:
+    c, d, n, centre = fingertip_contacts(hand, target.sdf, frames)  # d's derivative: the gradient channel (eq. 12)
+    if not cfg.normal_grad:  # the normals, and so the skin offsets along them, held where they are
         n = jax.lax.stop_gradient(n)
-    d = sdf.distance(target.sdf, c)  # derivative = the Gradient-SDF's gradient channel, as in eq. 12
+        c = centre + jax.lax.stop_gradient(c - centre)
     E_g, ok, basis = quality.q_distance_warm(c, n, target.centre, target.radius, cfg.mu, cfg.cone_edges,
                                              cfg.basis_size, cfg.lp_solver, cfg.lp_pivots, lp_basis)
     E_c = contact_energy(d, cfg.d0)
     E_q = joint_energy(hand, q)
+    if margin_dirs is None:
+        margin_dirs = jnp.asarray(quality.margin_start(cfg.margin_dirs), c.dtype)
+    if cfg.a_m > 0:
+        W = quality.primitive_wrenches(c, n, target.centre, target.radius, cfg.mu, cfg.cone_edges)
+        margin_dirs = quality.refine_directions(W, margin_dirs, cfg.margin_steps)
+        E_m, h_min = quality.support_margin(W, margin_dirs, cfg.margin)
+    else:
+        E_m, h_min = jnp.zeros_like(E_c), jnp.full_like(E_c, jnp.nan)
     P = F.penetration_penalty(hand, target.sdf, wrist_pose, q, frames) if cfg.a_pen > 0 else jnp.zeros_like(E_c)
-    E = E_g + cfg.a_c * E_c + cfg.a_q * E_q + cfg.a_pen * P
-    return E, Terms(E, E_g, E_c, E_q, P, ok, c, basis)
+    E = E_g + cfg.a_c * E_c + cfg.a_q * E_q + cfg.a_m * E_m + cfg.a_pen * P
+    return E, Terms(E, E_g, E_c, E_q, E_m, h_min, P, ok, c, basis, margin_dirs)

@@ -22,6 +22,7 @@ from ffcgs_jax.hand.kinematics import Hand
 from ffcgs_jax.synthesis.config import EnergyConfig, OptimConfig
 from ffcgs_jax.synthesis.energy import Target, Terms, energy
 from ffcgs_jax.synthesis.optim import adam_init, adam_update
+from ffcgs_jax.synthesis.quality import margin_start
 
 
 class Trace(NamedTuple):
@@ -63,14 +64,14 @@ def _optimize(hand: Hand, target: Target, poses, energy_cfg: EnergyConfig, optim
     T = optim_cfg.iters
     wrist = optim_cfg.wrist
 
-    def total(H, x, lp_basis, ramp):
+    def total(H, x, lp_basis, dirs, ramp):
         q, xi = x
-        E, terms = energy(hand, target, twist_pose(H, xi) if wrist else H, q, energy_cfg, lp_basis)
+        E, terms = energy(hand, target, twist_pose(H, xi) if wrist else H, q, energy_cfg, lp_basis, dirs)
         # the contact term's weight grows from a_c to contact_ramp x a_c over the descent: early on the hand shapes
         # the grasp (E_g), late the fingertips must end on the surface with it
         return E + (ramp - 1.0) * energy_cfg.a_c * terms.E_c, terms
 
-    value_and_grad = jax.vmap(jax.value_and_grad(total, argnums=1, has_aux=True), in_axes=(0, 0, 0, None))
+    value_and_grad = jax.vmap(jax.value_and_grad(total, argnums=1, has_aux=True), in_axes=(0, 0, 0, 0, None))
     q0 = jnp.zeros_like(hand.lower) if q_start is None else jnp.asarray(q_start, hand.lower.dtype)
     q0 = jnp.clip(jnp.broadcast_to(q0, (B, hand.n_channels)), hand.lower[None], hand.upper[None])
     xi0 = jnp.zeros((B, 6), poses.dtype)
@@ -83,10 +84,10 @@ def _optimize(hand: Hand, target: Target, poses, energy_cfg: EnergyConfig, optim
     first, last = (optim_cfg.lr, optim_cfg.lr_end) if adam else (optim_cfg.step, optim_cfg.step_end)
 
     def step(carry, t):
-        x, active, iters, lp_ok, state, lp_basis = carry
+        x, active, iters, lp_ok, state, lp_basis, dirs = carry
         ramp = 1.0 + (optim_cfg.contact_ramp - 1.0) * t / max(T - 1, 1)
-        (_, terms), g = value_and_grad(poses, x, lp_basis, ramp)
-        done = (terms.E_g < optim_cfg.eps_g) & (terms.E_c < optim_cfg.eps_c)
+        (_, terms), g = value_and_grad(poses, x, lp_basis, dirs, ramp)
+        done = (terms.E_g + terms.E_m < optim_cfg.eps_g) & (terms.E_c < optim_cfg.eps_c)
         active = active & ~done
         beta = first + (last - first) * t / max(T - 1, 1)
         move = active & terms.lp_ok
@@ -100,19 +101,21 @@ def _optimize(hand: Hand, target: Target, poses, energy_cfg: EnergyConfig, optim
         xi_new = jnp.where(move[:, None] & wrist, x[1] + delta[1], x[1])
         record = (terms.E, terms.E_g, terms.E_c, terms.contacts)
         return ((q_new, xi_new), active, iters + active, lp_ok & (terms.lp_ok | ~active), state,
-                terms.lp_basis), record
+                terms.lp_basis, terms.margin_dirs), record
 
     x0 = (q0, xi0)
     # each step's LP starts from the previous step's optimal basis: the wrenches move little per step, so it is
     # often still optimal or a few pivots away (-1s: no warm start for the first step)
     init = (x0, jnp.ones(B, bool), jnp.zeros(B, jnp.int32), jnp.ones(B, bool), adam_init(x0),
-            jnp.full((B, 7), -1, jnp.int32))
-    ((q, xi), active, iters, lp_ok, _, lp_basis), hist = jax.lax.scan(step, init, jnp.arange(T))
+            jnp.full((B, 7), -1, jnp.int32),
+            jnp.broadcast_to(jnp.asarray(margin_start(energy_cfg.margin_dirs), poses.dtype),
+                             (B, energy_cfg.margin_dirs, 6)))
+    ((q, xi), active, iters, lp_ok, _, lp_basis, dirs), hist = jax.lax.scan(step, init, jnp.arange(T))
     poses = jax.vmap(twist_pose)(poses, xi) if wrist else poses
-    _, final = jax.vmap(lambda H, qq, b: energy(hand, target, H, qq, energy_cfg, b))(poses, q, lp_basis)
+    _, final = jax.vmap(lambda H, qq, b, u: energy(hand, target, H, qq, energy_cfg, b, u))(poses, q, lp_basis, dirs)
     trace = Trace(*(jnp.concatenate([h, f[None]], 0) for h, f in
                     zip(hist, (final.E, final.E_g, final.E_c, final.contacts))))
-    converged = (final.E_g < optim_cfg.eps_g) & (final.E_c < optim_cfg.eps_c)
+    converged = (final.E_g + final.E_m < optim_cfg.eps_g) & (final.E_c < optim_cfg.eps_c)
     return OptResult(q, poses, final, iters, converged, lp_ok & final.lp_ok, trace)
 
 

@@ -1,8 +1,9 @@
 """The grasp energy (eq. 5, 12, 13 of the paper) against float64 NumPy formulas and central differences.
 
 Fixture: the two-finger toy hand at the identity wrist pose above the built-in ball (radius 3.5 cm, centre 3.5 cm
-above the table): both fingertips lie about 6 mm outside the surface, on different normals, so E_g > 0 (two point
-contacts never reach force closure), the LP solves and E is smooth in q. Everything is jitted (one compile per
+above the table): both fingertip sites lie about 6 mm outside the surface (their spheres' skins 1.4 and 2.1 cm
+inside), on different normals, so E_g > 0 (two point contacts never reach force closure), the LP solves and E is
+smooth in q. Everything is jitted (one compile per
 config): eager MJX costs more here than compiling.
 """
 
@@ -35,10 +36,31 @@ CFG_C1 = EnergyConfig(a_c=1.0, a_pen=0.0, normal_grad=True, d0=D0)  # CFG_SMOOTH
 
 energy_jit = jax.jit(En.energy, static_argnums=4)
 value_and_grad = jax.jit(jax.value_and_grad(En.energy, argnums=3, has_aux=True), static_argnums=4)
-contacts_jit = jax.jit(K.contact_points)
-jacobian_jit = jax.jit(K.contact_jacobian)
+fk_jit = jax.jit(K.forward_kinematics)
+spheres_jit = jax.jit(lambda hand, H, q: K.fingertip_spheres(hand, K.forward_kinematics(hand, H, q)))
 query_jit = jax.jit(sdf_mod.query)
 distance_jit = jax.jit(sdf_mod.distance)
+
+
+def tips_reference(hand, target, H, q):
+    """NumPy: per fingertip, the candidate sphere whose skin is nearest to the surface (index k), its gap, normal
+    and skin point (the contact)."""
+    centres, radii = (np.asarray(a) for a in spheres_jit(hand, H, q))
+    C, T = radii.shape
+    gaps = np.asarray(distance_jit(target.sdf, jnp.asarray(centres.reshape(-1, 3)))).reshape(C, T) - radii
+    k = gaps.argmin(axis=1)
+    centre, r = centres[np.arange(C), k], radii[np.arange(C), k]
+    n = np.asarray(query_jit(target.sdf, jnp.asarray(centre))[1])
+    return {"k": k, "gap": gaps[np.arange(C), k], "n": n, "point": centre - r[:, None] * n, "centre": centre}
+
+
+def centre_jacobian(hand, H, q, k, step=1e-6):
+    """(C, 3, Q) central differences of the chosen spheres' centres (k held fixed), float64."""
+    def centres(x):
+        c = np.asarray(spheres_jit(hand, H, jnp.asarray(x))[0])
+        return c[np.arange(len(k)), k]
+    q = np.asarray(q)
+    return np.stack([(centres(q + step * e) - centres(q - step * e)) / (2 * step) for e in np.eye(len(q))], -1)
 
 
 @pytest.fixture(scope="module")
@@ -93,10 +115,10 @@ def test_energy_terms_sum_with_configured_weights(toy):
     expected = float(t.E_g) + 3.0 * float(t.E_c) + 0.7 * float(t.E_q) + 200.0 * float(t.P)
     np.testing.assert_allclose(float(E), expected, rtol=RTOL_FORMULA)
     assert float(t.E) == float(E)
-    # each part is what its own function gives at the forward-kinematics contacts
-    c = contacts_jit(hand, H, q)
-    np.testing.assert_allclose(np.asarray(t.contacts), np.asarray(c), atol=1e-15)
-    d = np.asarray(distance_jit(target.sdf, c))
+    # each part is what its own function gives at the fingertips' skin points
+    ref = tips_reference(hand, target, H, q)
+    np.testing.assert_allclose(np.asarray(t.contacts), ref["point"], atol=1e-15)
+    d = ref["gap"]
     np.testing.assert_allclose(float(t.E_c), np.sqrt(np.mean((d + D0) ** 2)), rtol=1e-7)
     np.testing.assert_allclose(float(t.E_q), float(En.joint_energy(hand, q)), rtol=RTOL_FORMULA)
     np.testing.assert_allclose(float(t.P), float(jax.jit(F.penetration_penalty)(hand, target.sdf, H, q)), rtol=1e-12)
@@ -113,14 +135,15 @@ def test_no_penalty_weight_means_no_penalty_term(toy):
 def test_d0_shifts_contact_energy_as_eq12_says(toy):
     hand, target, H = toy
     q = jnp.asarray(Q)
-    d = np.asarray(distance_jit(target.sdf, contacts_jit(hand, H, q)))
+    d = tips_reference(hand, target, H, q)["gap"]
     (_, t0), _ = value_and_grad(hand, target, H, q, CFG_SMOOTH)  # d0 = 0
     (_, t), _ = value_and_grad(hand, target, H, q, CFG_C1)  # d0 = D0
     np.testing.assert_allclose(float(t0.E_c), np.sqrt(np.mean(d**2)), rtol=1e-7)
     np.testing.assert_allclose(float(t.E_c), np.sqrt(np.mean((d + D0) ** 2)), rtol=1e-7)
     # E_c^2 grows by 2 d0 mean(d) + d0^2, and nothing else moves
     np.testing.assert_allclose(float(t.E_c) ** 2 - float(t0.E_c) ** 2, 2 * D0 * d.mean() + D0**2, rtol=1e-5)
-    assert float(t.E_c) > float(t0.E_c)  # the tips are outside, so d0 > 0 moves them farther from "on target"
+    # the toy's fingertip skins reach into the ball here (gaps -2.1 and -1.4 cm): d0 > 0 moves them towards 0
+    assert d.max() < -D0 and float(t.E_c) < float(t0.E_c)
     assert float(t.E_g) == pytest.approx(float(t0.E_g), rel=1e-12) and float(t.E_q) == float(t0.E_q)
 
 
@@ -143,15 +166,17 @@ def test_gradient_matches_central_differences(toy):
 
 
 def test_contact_energy_gradient_is_eq12_with_the_gradient_channel(toy):
-    """dE_c/dq = sum_i (phi_i + d0) n_i^T J_i / (n E_c) with n_i the Gradient-SDF's interpolated gradient channel
-    (not the derivative of the interpolated distance, which jumps between voxels)."""
+    """dE_c/dq = sum_i (phi_i + d0) n_i^T J_i / (n E_c) with phi_i the gap of fingertip i's nearest sphere, J_i the
+    Jacobian of that sphere's centre and n_i the Gradient-SDF's interpolated gradient channel there (not the
+    derivative of the interpolated distance, which jumps between voxels)."""
     hand, target, H = toy
     q = jnp.asarray(Q)
     _, g1 = value_and_grad(hand, target, H, q, CFG_C1)
     _, g0 = value_and_grad(hand, target, H, q, CFG_SMOOTH)
     g = np.asarray(g1) - np.asarray(g0)  # the two differ by 1 * E_c only
-    d, n = (np.asarray(a) for a in query_jit(target.sdf, contacts_jit(hand, H, q)))
-    J = np.asarray(jacobian_jit(hand, H, q))  # (C, 3, Q)
+    ref = tips_reference(hand, target, H, q)
+    d, n = ref["gap"], ref["n"]
+    J = centre_jacobian(hand, H, q, ref["k"])  # (C, 3, Q)
     E_c = np.sqrt(np.mean((d + D0) ** 2))
     expected = np.einsum("c,ci,ciq->q", d + D0, n, J) / (len(d) * E_c)
     assert np.abs(expected).max() > 1e-3
@@ -164,11 +189,14 @@ def test_fixed_normals_change_the_gradient_only_through_the_normals(toy):
     q = jnp.asarray(Q)
     (E_on, _), g_on = value_and_grad(hand, target, H, q, CFG_SMOOTH)
     (E_off, _), g_off = value_and_grad(hand, target, H, q, CFG_FIXED)
-    _, n_fixed = query_jit(target.sdf, contacts_jit(hand, H, q))
+    ref = tips_reference(hand, target, H, q)
+    n_fixed, offset, k = jnp.asarray(ref["n"]), jnp.asarray(ref["point"] - ref["centre"]), jnp.asarray(ref["k"])
 
     @jax.jit
-    def fixed(x):
-        E_g, _ = quality.q_distance(K.contact_points(hand, H, x), n_fixed, target.centre, target.radius,
+    def fixed(x):  # the chosen spheres' centres move with x; their skin offsets and normals are held
+        centres, _ = K.fingertip_spheres(hand, K.forward_kinematics(hand, H, x))
+        c = jnp.take_along_axis(centres, k[:, None, None], axis=1)[:, 0] + offset
+        E_g, _ = quality.q_distance(c, n_fixed, target.centre, target.radius,
                                     CFG_FIXED.mu, CFG_FIXED.cone_edges, CFG_FIXED.basis_size)
         return E_g + CFG_FIXED.a_q * En.joint_energy(hand, x)
 

@@ -8,6 +8,7 @@ paper's preset; given poses (which skip the sampler: a third function) are marke
 import dataclasses
 
 import jax
+import mujoco
 import numpy as np
 import pytest
 
@@ -31,7 +32,8 @@ FIELDS = {  # name: (shape with G for the grasp count, dtype kind)
     "contacts": (("G", 5, 3), "f"), "E": (("G",), "f"), "E_g": (("G",), "f"), "E_c": (("G",), "f"),
     "E_q": (("G",), "f"), "epsilon": (("G",), "f"), "penetration": (("G",), "f"), "valid": (("G",), "b"),
     "pose_collides": (("G",), "b"), "palm_up": (("G",), "b"), "tips_below_table": (("G",), "b"),
-    "lp_ok": (("G",), "b"), "synthesis_s": ((), "f"), "compile_s": ((), "f"),
+    "lp_ok": (("G",), "b"), "synthesis_s": ((), "f"), "compile_s": ((), "f"), "E_m": (("G",), "f"),
+    "squeeze_dir": (("G", 9), "f"), "q_squeeze": (("G", 9), "f"), "n_contacts": (("G",), "i"),
 }
 
 
@@ -89,11 +91,19 @@ def test_channels_within_limits_and_joints_follow_the_coupling(run, svh):
 
 
 def test_contacts_are_the_forward_kinematics_of_the_saved_grasp(run, svh):
-    """Checked with MuJoCo C: the hand placed at the saved wrist pose with the saved channels."""
+    """Checked with MuJoCo C: the hand placed at the saved wrist pose with the saved channels; each contact lies on
+    the skin of one of its fingertip's candidate spheres (a sphere of the fingertip link, or the site, radius 0)."""
+    pos, rad, body = np.asarray(svh.tip_pos), np.asarray(svh.tip_radius), np.asarray(svh.tip_body)
     for i in range(N):
         m, d = scene.build_scene(svh.spec, run["wrist_pose"][i])
         scene.set_channels(m, d, np.asarray(svh.coupling), run["q"][i])
-        np.testing.assert_allclose(run["contacts"][i], d.site_xpos[list(svh.contact_site_ids)], atol=ATOL_FK)
+        # tip bodies by name: the scene's model holds more bodies than the hand's
+        ids = [mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_BODY, mujoco.mj_id2name(svh.spec.mj_model(),
+                                                                               mujoco.mjtObj.mjOBJ_BODY, int(b)))
+               for b in body]
+        centres = np.einsum("cij,ctj->cti", d.xmat[ids].reshape(-1, 3, 3), pos) + d.xpos[ids][:, None]
+        off_skin = np.abs(np.linalg.norm(run["contacts"][i][:, None] - centres, axis=-1) - rad).min(axis=1)
+        assert off_skin.max() <= ATOL_FK
     R = run["wrist_pose"][:, :3, :3]
     np.testing.assert_allclose(R @ np.swapaxes(R, 1, 2), np.broadcast_to(np.eye(3), R.shape), atol=1e-9)
     np.testing.assert_allclose(run["wrist_pose"][:, 3], np.tile([0, 0, 0, 1.0], (N, 1)), atol=0)
@@ -187,3 +197,38 @@ def test_lowering_a_function_of_a_hand():
 
 def test_summary_rows_type_checks(box_run):
     assert G.summary_rows(box_run)[-1][0] == "compile time (s)"
+
+
+def test_squeeze_direction_is_sum_of_jacobian_transposed_normals(svh, meshes):
+    """squeeze_dir (JAX Jacobians of the touching fingertips' chosen spheres) against MuJoCo C: sum over touching
+    fingertips of J_i^T (-n_i), J_i the Jacobian of the contact point held on its fingertip link (mj_jac), n_i the
+    mesh normal there; scaled to a largest channel of 1. The two Jacobians differ by a rotation times the skin offset,
+    which is tangential up to the angle between the SDF's and the mesh's normals: agreement 0.05."""
+    from ffcgs_jax.evaluation.metrics import mesh_contacts, squeeze_direction
+
+    # 5 descent steps leave the fingertips short of the box: a 5 cm tolerance makes most of them "touching" (the
+    # device part does not depend on the tolerance: no new compile)
+    box_run = synth(svh, meshes["box"], dataclasses.replace(BOX, contact_tol=0.05), "box")
+    a = box_run.arrays
+    touching = np.abs(a["contact_dist"]) <= box_run.config.contact_tol
+    some = touching.any(axis=1)
+    assert some.sum() >= 2
+    assert np.abs(a["squeeze_dir"]).max(axis=1)[some] == pytest.approx(1.0)
+    assert (a["squeeze_dir"][~some] == 0).all()
+    np.testing.assert_allclose(a["q_squeeze"], np.clip(a["q"] + box_run.config.squeeze * a["squeeze_dir"],
+                                                       np.asarray(svh.lower), np.asarray(svh.upper)), atol=1e-12)
+    body = np.asarray(svh.tip_body)
+    names = [mujoco.mj_id2name(svh.spec.mj_model(), mujoco.mjtObj.mjOBJ_BODY, int(b)) for b in body]
+    jac = np.zeros((N, len(body), 3, svh.n_channels))
+    for i in range(N):
+        m, d = scene.build_scene(svh.spec, a["wrist_pose"][i])
+        scene.set_channels(m, d, np.asarray(svh.coupling), a["q"][i])
+        mujoco.mj_forward(m, d)  # mj_jac needs the motion subspaces (cdof) too
+        cols = [m.jnt_dofadr[mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_JOINT, str(j))] for j in a["joint_names"]]
+        for k, name in enumerate(names):
+            jp = np.zeros((3, m.nv))
+            mujoco.mj_jac(m, d, jp, None, a["contacts"][i, k], mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_BODY, name))
+            jac[i, k] = jp[:, cols] @ np.asarray(svh.coupling)
+    _, normals, _ = mesh_contacts(meshes["box"], a["contacts"])
+    expected = squeeze_direction(jac, normals, touching)
+    np.testing.assert_allclose(a["squeeze_dir"][some], expected[some], atol=0.05)
