@@ -23,9 +23,9 @@ class EnergyConfig:
             gauge then stays within a few per cent of the Euclidean distance while the LP stays small).
         d0: E_c offset: 0 as in the paper's simulation, 0.005 for its real-robot setting (a slight squeeze).
         a_c, a_q: weights of E_c (metres) and E_q (paper: 5 and 0.5).
-        margin: delta, the force-closure margin the descent aims for: E_m (`quality.support_margin`) is 0 once the
-            wrench hull's support reaches delta in each of `margin_dirs` directions searched where the hull is thin
-            (Ferrari-Canny epsilon >= delta implies it). Dimensionless, like E_g (forces of unit cone edges, torques
+        closure_margin: delta, the force-closure margin the descent aims for: E_m (`quality.support_margin`) is 0
+            once the wrench hull's support reaches delta in each of `margin_dirs` directions searched where the hull
+            is thin (Ferrari-Canny epsilon >= delta implies it). Dimensionless, like E_g (forces of unit cone edges, torques
             divided by the object radius).
         a_m: weight of E_m; 0 leaves it out (the paper: E_g alone, whose optimum is the hull's boundary).
             Defaults delta 0.1, a_m 3: chosen on the YCB training objects among a_m 0, (1, 0.03), (3, 0.05),
@@ -51,7 +51,7 @@ class EnergyConfig:
     d0: float = 0.0
     a_c: float = 5.0
     a_q: float = 0.5
-    margin: float = 0.1
+    closure_margin: float = 0.1
     a_m: float = 3.0
     margin_dirs: int = 16
     margin_steps: int = 4
@@ -68,7 +68,7 @@ class EnergyConfig:
         check_range("energy.cone_edges", self.cone_edges, 3, 64)
         check_range("energy.basis_size", self.basis_size, 12, 1024)
         check_range("energy.d0", self.d0, -0.05, 0.05)
-        check_range("energy.margin", self.margin, 0.0, 1.0)
+        check_range("energy.closure_margin", self.closure_margin, 0.0, 1.0)
         check_integer("energy.margin_dirs", self.margin_dirs, 1, 1024)
         check_integer("energy.margin_steps", self.margin_steps, 0, 1000)
         for name in ("a_c", "a_q", "a_m", "a_pen"):
@@ -216,7 +216,7 @@ class GraspConfig:
         contact_tol: a fingertip touches the object when the mesh is within this distance (metres) of its contact
             point; only touching fingertips count for epsilon, force_closure, E_g_mesh and n_contacts, and a valid
             grasp has every fingertip touching and force closure with them.
-        squeeze: radians past q, along `squeeze_dir` (sum_i J_i^T (-n_i) over the touching fingertips, largest
+        squeeze_angle: radians past q, along `squeeze_dir` (sum_i J_i^T (-n_i) over the touching fingertips, largest
             channel 1), of the servo target a grasp is executed with: `q_squeeze` in the grasp file. 0.2, as the
             physics test's `physics.squeeze`, which presses with the file's `squeeze_dir` too.
         devices: local accelerators the batch of poses is split over (`jax.sharding`, each device optimises its
@@ -230,7 +230,7 @@ class GraspConfig:
     max_penetration: float = 0.01
     max_contact_rms: float = 0.01
     contact_tol: float = 0.002
-    squeeze: float = 0.2
+    squeeze_angle: float = 0.2
     devices: int = 0
     sdf: SDFConfig = SDFConfig()
     energy: EnergyConfig = EnergyConfig()
@@ -248,5 +248,5 @@ class GraspConfig:
         if not 0 <= self.max_contact_rms <= 1:
             raise FfcgsError(f"max_contact_rms must be in [0, 1] m, got {self.max_contact_rms}")
         check_range("contact_tol", self.contact_tol, 0.0, 1.0)
-        check_range("squeeze", self.squeeze, 0.0, 3.0)
+        check_range("squeeze_angle", self.squeeze_angle, 0.0, 3.0)
         check_integer("devices", self.devices, 0, 4096)

@@ -109,7 +109,7 @@ def energy(
     if cfg.a_m > 0:
         W = quality.primitive_wrenches(c, n, target.centre, target.radius, cfg.mu, cfg.cone_edges)
         margin_dirs = quality.refine_directions(W, margin_dirs, cfg.margin_steps)
-        E_m, h_min = quality.support_margin(W, margin_dirs, cfg.margin)
+        E_m, h_min = quality.support_margin(W, margin_dirs, cfg.closure_margin)
     else:
         E_m, h_min = jnp.zeros_like(E_c), jnp.full_like(E_c, jnp.nan)
     P = F.penetration_penalty(hand, target.sdf, wrist_pose, q, frames) if cfg.a_pen > 0 else jnp.zeros_like(E_c)

@@ -236,7 +236,7 @@ def _finish(hand, mesh, target, cfg, out: DeviceOut, synthesis_s, compile_s, obj
         "contact_dist": np.asarray(ev["contact_dist"], np.float64),
         "n_contacts": np.asarray(ev["n_contacts"], np.int64),
         "squeeze_dir": squeeze_dir,
-        "q_squeeze": np.clip(q + cfg.squeeze * squeeze_dir, np.asarray(hand.lower), np.asarray(hand.upper)),
+        "q_squeeze": np.clip(q + cfg.squeeze_angle * squeeze_dir, np.asarray(hand.lower), np.asarray(hand.upper)),
         "penetration": penetration,
         "table_penetration": np.asarray(out.table_penetration, np.float64),
         "pose_collides": np.asarray(out.pose_collides),

@@ -29,10 +29,10 @@ RTOL_FD = 1e-4  # central differences with step 3e-4 rad; the LP is solved to 1e
 FD_STEP = 3e-4
 
 D0 = 0.004
-CFG_W = EnergyConfig(a_c=3.0, a_q=0.7, a_pen=200.0, d0=D0)  # every term on, odd weights
-CFG_SMOOTH = EnergyConfig(a_c=0.0, a_pen=0.0, normal_grad=True)  # E_g + 0.5 E_q: JAX's own derivatives only
-CFG_FIXED = EnergyConfig(a_c=0.0, a_pen=0.0, normal_grad=False)
-CFG_C1 = EnergyConfig(a_c=1.0, a_pen=0.0, normal_grad=True, d0=D0)  # CFG_SMOOTH + E_c (with d0)
+CFG_W = EnergyConfig(a_c=3.0, a_q=0.7, a_pen=200.0, d0=D0, a_m=0.0)  # margin: elsewhere  # every term on, odd weights
+CFG_SMOOTH = EnergyConfig(a_c=0.0, a_pen=0.0, a_m=0.0, normal_grad=True)  # E_g + 0.5 E_q: JAX's own derivatives only
+CFG_FIXED = EnergyConfig(a_c=0.0, a_pen=0.0, a_m=0.0, normal_grad=False)
+CFG_C1 = EnergyConfig(a_c=1.0, a_pen=0.0, a_m=0.0, normal_grad=True, d0=D0)  # CFG_SMOOTH + E_c (with d0)
 
 energy_jit = jax.jit(En.energy, static_argnums=4)
 value_and_grad = jax.jit(jax.value_and_grad(En.energy, argnums=3, has_aux=True), static_argnums=4)

@@ -24,7 +24,7 @@ from ffcgs_jax.viz import scene
 
 N, ITERS = 4, 5
 BOX = G.GraspConfig(n=N, sdf=SDFConfig(res=16), optim=OptimConfig(iters=ITERS))
-PAPER = dataclasses.replace(BOX, sampler="random", energy=EnergyConfig(a_pen=0.0, normal_grad=False),
+PAPER = dataclasses.replace(BOX, sampler="random", energy=EnergyConfig(a_pen=0.0, a_m=0.0, normal_grad=False),
                             optim=OptimConfig(iters=ITERS, method="gd", wrist=False))
 ATOL_FK = 1e-9  # MJX (saved contacts) vs MuJoCo C forward kinematics, float64, metres
 FIELDS = {  # name: (shape with G for the grasp count, dtype kind)
@@ -127,7 +127,7 @@ def test_valid_is_the_and_of_the_filters(run):
 
 def test_energy_is_at_least_its_saved_parts(run):
     a, e = run.arrays, run.config.energy
-    parts = a["E_g"] + e.a_c * a["E_c"] + e.a_q * a["E_q"]
+    parts = a["E_g"] + e.a_c * a["E_c"] + e.a_q * a["E_q"] + e.a_m * a["E_m"]
     assert (a["E"] >= parts - 1e-9).all()
     if e.a_pen == 0:  # no penalty: E is exactly its parts
         np.testing.assert_allclose(a["E"], parts, rtol=1e-12)
@@ -215,7 +215,7 @@ def test_squeeze_direction_is_sum_of_jacobian_transposed_normals(svh, meshes):
     assert some.sum() >= 2
     assert np.abs(a["squeeze_dir"]).max(axis=1)[some] == pytest.approx(1.0)
     assert (a["squeeze_dir"][~some] == 0).all()
-    np.testing.assert_allclose(a["q_squeeze"], np.clip(a["q"] + box_run.config.squeeze * a["squeeze_dir"],
+    np.testing.assert_allclose(a["q_squeeze"], np.clip(a["q"] + box_run.config.squeeze_angle * a["squeeze_dir"],
                                                        np.asarray(svh.lower), np.asarray(svh.upper)), atol=1e-12)
     body = np.asarray(svh.tip_body)
     names = [mujoco.mj_id2name(svh.spec.mj_model(), mujoco.mjtObj.mjOBJ_BODY, int(b)) for b in body]
