@@ -99,6 +99,13 @@ def write_text(path: str | Path, text: str) -> Path:
 _ZIP, _NPY = b"PK\x03\x04", b"\x93NUMPY"
 
 
+def duplicate_stems(paths) -> list[str]:
+    """The file stems (names without suffix) that more than one of `paths` shares, sorted: files a folder's reader
+    would name alike (a.png and a.npy, a.obj and a.stl)."""
+    stems = [Path(p).stem for p in paths]
+    return sorted({s for s in stems if stems.count(s) > 1})
+
+
 def _kind(head: bytes) -> str:
     if not head:
         return "an empty file"

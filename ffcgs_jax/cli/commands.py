@@ -427,7 +427,7 @@ def run_eval(cmd: EvalCmd) -> None:
         raise FfcgsError(f"{cmd.grasps} has no valid grasps to test (use --all to test them anyway)")
     t0 = time.perf_counter()
     # files from before squeeze_dir was recorded: the physics test derives it from the fingertips near the mesh
-    squeeze = data["squeeze_dir"] if "squeeze_dir" in data else None
+    squeeze = data.get("squeeze_dir")
     res, backend = _run_physics(spec, mesh, data["wrist_pose"][idx], data["q"][idx], cmd.physics, protocols,
                                 None if squeeze is None else squeeze[idx])
     seconds = time.perf_counter() - t0

@@ -36,6 +36,7 @@ import numpy as np
 import trimesh
 
 from ffcgs_jax import files
+from ffcgs_jax.files import duplicate_stems
 from ffcgs_jax.dataset import mcap_io as dataset_io
 from ffcgs_jax.dataset import schema
 from ffcgs_jax.dataset.config import DatasetConfig
@@ -94,7 +95,7 @@ def sources(cfg: DatasetConfig) -> list[Source]:
     if not files:
         raise FfcgsError(f"no mesh files ({', '.join(mesh_io.FORMATS)}) in {directory}")
     stems = [p.stem for p in files]
-    dup = sorted({s for s in stems if stems.count(s) > 1})
+    dup = duplicate_stems(files)
     if dup:
         raise FfcgsError(f"{directory}: several files share the name(s) {dup}; object names must be unique")
     cats = _categories(directory)

@@ -198,8 +198,7 @@ def _depth_files(folder: pathlib.Path) -> list[pathlib.Path]:
                    and not (p.suffix.lower() == ".png" and p.stem.endswith(_MASK)))
     if not found:
         raise FfcgsError(f"depth folder {folder} has no depth images (*.png or *.npy besides *{_MASK}.png)")
-    stems = [p.stem for p in found]
-    twins = sorted({s for s in stems if stems.count(s) > 1})
+    twins = files.duplicate_stems(found)
     if twins:
         raise FfcgsError(f"depth folder {folder} has two depth images named {twins[0]} (.png and .npy); keep one")
     return found

@@ -128,7 +128,7 @@ def prepare(scene: PhysicsScene, mesh: trimesh.Trimesh, wrist_pose, q, cfg: Phys
         pose_hand(scene, d, T[g, :3, 3], quat[g], qq[g])
         mujoco.mj_forward(m, d)
         depth[g], palm[g] = _contact_state(scene, d)
-        for k, s in enumerate(scene.tip_sites):
+        for k, s in enumerate(scene.tip_sites if squeeze_dir is None else ()):  # Jacobians only to derive it
             mujoco.mj_jacSite(m, d, jp, None, int(s))
             jac[g, k] = jp[:, dof] @ scene.coupling
             tips[g, k] = d.site_xpos[s]

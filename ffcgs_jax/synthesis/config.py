@@ -25,8 +25,8 @@ class EnergyConfig:
         a_c, a_q: weights of E_c (metres) and E_q (paper: 5 and 0.5).
         closure_margin: delta, the force-closure margin the descent aims for: E_m (`quality.support_margin`) is 0
             once the wrench hull's support reaches delta in each of `margin_dirs` directions searched where the hull
-            is thin (Ferrari-Canny epsilon >= delta implies it). Dimensionless, like E_g (forces of unit cone edges, torques
-            divided by the object radius).
+            is thin (Ferrari-Canny epsilon >= delta implies it). Dimensionless, like E_g (forces of unit cone edges,
+            torques divided by the object radius).
         a_m: weight of E_m; 0 leaves it out (the paper: E_g alone, whose optimum is the hull's boundary).
             Defaults delta 0.1, a_m 3: chosen on the YCB training objects among a_m 0, (1, 0.03), (3, 0.05),
             (3, 0.1): same physics success (49 %), valid share 44 -> 59 %, median E_c 0.81 -> 0.18 mm

@@ -62,8 +62,22 @@ def joint_energy(hand: Hand, q: Float[Array, " Q"]) -> Float[Array, ""]:
     return jnp.mean(((q - hand.q_mean) / hand.q_range) ** 2)
 
 
-def fingertip_contacts(hand: Hand, grid: sdf.GradientSDF, frames
-                       ) -> tuple[Float[Array, "C 3"], Float[Array, " C"], Float[Array, "C 3"], Float[Array, "C 3"]]:
+class Tips(NamedTuple):
+    """Where the fingertips touch (`fingertip_contacts`)."""
+
+    points: Float[Array, "C 3"]  # skin points, centre - radius x normal
+    gaps: Float[Array, " C"]  # signed skin-to-surface distances (m; < 0 penetrates), derivative as `sdf.distance`
+    normals: Float[Array, "C 3"]  # the SDF's outward normals at the chosen spheres' centres
+    centres: Float[Array, "C 3"]  # the chosen spheres' centres
+    choice: Int[Array, " C"]  # which of the fingertip's candidate spheres (`Hand.tip_pos`) was chosen
+
+
+def chosen(a: Float[Array, "C T ..."], choice: Int[Array, " C"]) -> Float[Array, "C ..."]:
+    """Per fingertip, the row of its candidates `a` at `choice`."""
+    return jnp.take_along_axis(a, choice.reshape((-1, 1) + (1,) * (a.ndim - 2)), axis=1)[:, 0]
+
+
+def fingertip_contacts(hand: Hand, grid: sdf.GradientSDF, frames) -> Tips:
     """Where each fingertip touches: among its candidate spheres (`kinematics.fingertip_spheres`: the fingertip
     link's collision spheres and the contact site), the one whose skin is nearest to the surface.
 
@@ -72,20 +86,14 @@ def fingertip_contacts(hand: Hand, grid: sdf.GradientSDF, frames
     a descent that puts the site on the surface pushes the rest of the fingertip into the object: 3.4-4.2 mm deep
     on the built-in objects. The skin point is what touches in physics.
 
-    Returns:
-        points (C, 3): the skin points, centre - radius x normal; gaps (C,): signed distances of the skin to the
-        surface (metres; negative: the fingertip penetrates), differentiable like `sdf.distance`; normals (C, 3):
-        the SDF's outward normal at those spheres' centres; centres (C, 3) of the chosen spheres.
     """
     centres, radii = K.fingertip_spheres(hand, frames)
     C, T = radii.shape
-    flat = centres.reshape(C * T, 3)
-    gap = (sdf.distance(grid, flat).reshape(C, T) - radii)
+    gap = sdf.distance(grid, centres.reshape(C * T, 3)).reshape(C, T) - radii
     k = jnp.argmin(gap, axis=1)
-    pick = lambda a: jnp.take_along_axis(a, k.reshape((C, 1) + (1,) * (a.ndim - 2)), axis=1)[:, 0]  # noqa: E731
-    centre, r = pick(centres), pick(radii)
+    centre, r = chosen(centres, k), chosen(radii, k)
     _, n = sdf.query(grid, centre)
-    return centre - r[:, None] * n, pick(gap), n, centre
+    return Tips(centre - r[:, None] * n, chosen(gap, k), n, centre, k)
 
 
 def energy(
@@ -96,18 +104,18 @@ def energy(
     starts for the Q-distance LP and the margin's direction search (`Terms.lp_basis`, `Terms.margin_dirs` of a
     nearby call)."""
     frames = forward_kinematics(hand, wrist_pose, q)  # one MJX pass (and one backward) for contacts and spheres
-    c, d, n, centre = fingertip_contacts(hand, target.sdf, frames)  # d's derivative: the gradient channel (eq. 12)
+    c, d, n, centre, _ = fingertip_contacts(hand, target.sdf, frames)  # d's derivative: the gradient channel (eq. 12)
     if not cfg.normal_grad:  # the normals, and so the skin offsets along them, held where they are
         n = jax.lax.stop_gradient(n)
         c = centre + jax.lax.stop_gradient(c - centre)
+    W = quality.primitive_wrenches(c, n, target.centre, target.radius, cfg.mu, cfg.cone_edges)  # for E_g and E_m
     E_g, ok, basis = quality.q_distance_warm(c, n, target.centre, target.radius, cfg.mu, cfg.cone_edges,
-                                             cfg.basis_size, cfg.lp_solver, cfg.lp_pivots, lp_basis)
+                                             cfg.basis_size, cfg.lp_solver, cfg.lp_pivots, lp_basis, W=W)
     E_c = contact_energy(d, cfg.d0)
     E_q = joint_energy(hand, q)
     if margin_dirs is None:
         margin_dirs = jnp.asarray(quality.margin_start(cfg.margin_dirs), c.dtype)
     if cfg.a_m > 0:
-        W = quality.primitive_wrenches(c, n, target.centre, target.radius, cfg.mu, cfg.cone_edges)
         margin_dirs = quality.refine_directions(W, margin_dirs, cfg.margin_steps)
         E_m, h_min = quality.support_margin(W, margin_dirs, cfg.closure_margin)
     else:

@@ -27,7 +27,7 @@ from ffcgs_jax.hand.kinematics import Hand
 from ffcgs_jax.synthesis import filters as F
 from ffcgs_jax.synthesis import memory, samplers, sharding
 from ffcgs_jax.synthesis.config import EnergyConfig, GraspConfig, OptimConfig
-from ffcgs_jax.synthesis.energy import Target, fingertip_contacts, make_target
+from ffcgs_jax.synthesis.energy import Target, chosen, fingertip_contacts, make_target
 from ffcgs_jax.synthesis.optimize import OptResult, _optimize
 
 
@@ -77,7 +77,10 @@ def _descend_and_filter(hand: Hand, target: Target, poses: jax.Array, given_q: j
     tpen = jax.vmap(lambda H, q: F.hand_table_penetration(hand, target.sdf, H, q)[0])(poses, opt.q)
     # the chosen sphere's centre moves along the normal as its skin point does (a rotation moves the skin point
     # tangentially relative to the centre), and only the normal part enters the squeeze direction
-    jac = jax.vmap(lambda H, q: jax.jacfwd(lambda x: _tip_centres(hand, target, H, x, q))(q))(poses, opt.q)
+    choice = jax.vmap(lambda H, q: fingertip_contacts(hand, target.sdf, K.forward_kinematics(hand, H, q)).choice)(
+        poses, opt.q)
+    jac = jax.vmap(lambda H, q, k: jax.jacfwd(
+        lambda x: chosen(K.fingertip_spheres(hand, K.forward_kinematics(hand, H, x))[0], k))(q))(poses, opt.q, choice)
     return DeviceOut(
         poses=poses,
         opt=opt,
@@ -88,14 +91,6 @@ def _descend_and_filter(hand: Hand, target: Target, poses: jax.Array, given_q: j
         table_penetration=tpen,
         tip_jac=jac,
     )
-
-
-def _tip_centres(hand: Hand, target: Target, H: jax.Array, x: jax.Array, q_at: jax.Array) -> jax.Array:
-    """Centres (C, 3) at channels x of the fingertip spheres that touch at q_at (the choice held fixed)."""
-    at = fingertip_contacts(hand, target.sdf, K.forward_kinematics(hand, H, q_at))[3]
-    centres, _ = K.fingertip_spheres(hand, K.forward_kinematics(hand, H, x))
-    k = jnp.argmin(jnp.sum((jax.lax.stop_gradient(centres) - jax.lax.stop_gradient(at)[:, None]) ** 2, -1), axis=1)
-    return jnp.take_along_axis(centres, k[:, None, None], axis=1)[:, 0]
 
 
 device_mesh = sharding.device_mesh

@@ -133,11 +133,13 @@ def support_margin(W: Float[Array, "6 N"], dirs: Float[Array, "M 6"], delta: flo
 
 
 def q_distance_warm(contacts, normals, centre, radius, mu: float = 0.2, m: int = 8, K: int = 64,
-                    solver: str = "jax", pivots: int = lp_jax.MAX_ITER, basis0: Int[Array, " 7"] | None = None
-                    ) -> tuple[Float[Array, ""], Bool[Array, ""], Int[Array, " 7"]]:
+                    solver: str = "jax", pivots: int = lp_jax.MAX_ITER, basis0: Int[Array, " 7"] | None = None,
+                    W: Float[Array, "6 N"] | None = None) -> tuple[Float[Array, ""], Bool[Array, ""], Int[Array, " 7"]]:
     """`q_distance`, plus the LP's final basis, and a warm start from `basis0` (the "jax" solver uses it when it is
-    a feasible basis of this LP, e.g. the previous descent step's). The "proxsuite" path returns -1s."""
-    W = primitive_wrenches(contacts, normals, centre, radius, mu, m)
+    a feasible basis of this LP, e.g. the previous descent step's). The "proxsuite" path returns -1s. `W`: the
+    primitive wrenches of these contacts when the caller has built them already (`primitive_wrenches`)."""
+    if W is None:
+        W = primitive_wrenches(contacts, normals, centre, radius, mu, m)
     if solver == "jax":
         value, ok, final_basis = lp_jax.q_distance(W, basis(K), pivots, basis0)
     else:
