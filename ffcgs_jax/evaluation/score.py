@@ -9,7 +9,7 @@ training objects only (sorted index % 5 != 4), never the test split. Its coeffic
 What it is good for: telling likely from unlikely grasps across objects (on 2,358 physics-tested training grasps,
 AUC 0.74 leave-one-object-out, where E reaches 0.62 and epsilon 0.73; 0.70 on the test split), e.g. a threshold on
 what to execute. What it is not: a better order within one object. There every analytic figure tried is weak
-(within-object AUC 0.55-0.58), E slightly the best, so `GraspSet.order` keeps E (bench/RESULTS.md, "Grasp quality").
+(within-call AUC 0.54 for the score, 0.56 for E; `bench/fit_score.py`), E slightly the better, so `GraspSet.order` keeps E (bench/RESULTS.md, "Grasp quality").
 """
 
 import functools

@@ -133,7 +133,7 @@ class GraspSet:
     def order(self) -> np.ndarray:
         """Grasp indices, valid ones first, each group by increasing E, ties by index: the same grasps give the same
         order. Not by `score`: within one object, E ranked physics outcomes better on the YCB training objects
-        (leave-one-object-out top-1 40.0 % against 37.9 %; bench/RESULTS.md, "Grasp quality"); `score` is the
+        (`bench/fit_score.py`: top-1 40.0 % against 37.1 % leave-one-object-out; bench/RESULTS.md, "Grasp quality"); `score` is the
         calibrated chance of passing, for comparing grasps across objects and for thresholds."""
         n = len(self["valid"])
         return np.lexsort((np.arange(n), self["E"], ~self["valid"]))

@@ -62,3 +62,17 @@ def test_order_is_deterministic_valid_first_then_E_then_index():
     expected = sorted(range(n), key=lambda i: (not valid[i], E[i], i))
     assert order.tolist() == expected
     assert gs.order().tolist() == order.tolist()  # and again
+
+
+def test_evaluate_ranks_any_objects_with_the_shipped_score(tmp_path, capsys):
+    """--evaluate reads test-split records too (it fits nothing) and prints the pooled and within-call figures."""
+    a = _arrays(4, seed=3)
+    rec = {"group": "ycb-test", "object": "015_peach", "row": "cvae", "tested": [0, 1, 2, 3],
+           "E": [0.1, 0.2, 0.3, 0.4], "physics": {"lift_shake_success": [True, True, False, True],
+                                                  "six_dir_success": [True, False, False, True]},
+           **{k: np.asarray(v).tolist() for k, v in a.items()}}
+    path = tmp_path / "q.json"
+    path.write_text(json.dumps({"config": {}, "records": [rec]}))
+    assert fit_score.main(["--evaluate", str(path)]) == 0
+    out = capsys.readouterr().out
+    assert "4 grasps, 50.0% pass both protocols" in out and "top-1 100.0%" in out  # E's best (index 0) passes
