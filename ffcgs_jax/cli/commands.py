@@ -15,6 +15,7 @@ import numpy as np
 import tyro
 
 from ffcgs_jax import files
+from ffcgs_jax.cli.depth_commands import FuseCmd, RenderDepthCmd, run_fuse, run_render_depth
 from ffcgs_jax.dataset.config import DatasetConfig
 from ffcgs_jax.errors import FfcgsError
 from ffcgs_jax.geometry.config import SDFConfig
@@ -237,7 +238,14 @@ class GraspCmd:
     """Synthesise force-closure grasps of an object: sample wrist poses, optimise the fingers, filter, evaluate.
 
     Attributes:
-        object: built-in name (see `ffcgs objects`) or a mesh file (obj, stl, ply, off, glb), metres, z up.
+        object: built-in name (see `ffcgs objects`) or a mesh file (obj, stl, ply, off, glb), metres, z up. With
+            `--depth`, optional (also as `--object`): the true object, in the cameras' world frame, on which the
+            grasps are evaluated (epsilon, contacts) and `--validate` simulates; without it the evaluation uses the
+            fused surface.
+        depth: plan on an object seen by depth cameras instead of a mesh: a depth folder or .npz (README: "Depth
+            input"), fused into the grid of `--res` voxels; the object frame is the cameras' world frame.
+        table_z: with `--depth`: the table height in metres; default: fitted to the readings.
+        bounds: with `--depth`: workspace box XMIN YMIN ZMIN XMAX YMAX ZMAX (metres): readings outside are ignored.
         out: grasp arrays (.npz; fields in README).
         mcap: also write an MCAP log of the run (config, per-iteration energies, grasps).
         png: also draw the best grasps to this PNG.
@@ -247,7 +255,10 @@ class GraspCmd:
         grasp: synthesis settings (flags without prefix: --n, --sampler, --iters, --res, --d0, ...).
     """
 
-    object: tyro.conf.Positional[str] = tyro.MISSING
+    object: tyro.conf.Positional[str | None] = None
+    depth: str | None = None
+    table_z: float | None = None
+    bounds: tuple[float, float, float, float, float, float] | None = None
     out: str = "grasps.npz"
     mcap: str | None = None
     png: str | None = None
@@ -260,6 +271,12 @@ class GraspCmd:
 
     def check(self) -> None:
         _protocols(self.protocol)
+        if self.object is None and self.depth is None:
+            raise FfcgsError("ffcgs grasp needs an object (a built-in name or a mesh file) or --depth FRAMES")
+        if self.depth is None and (self.table_z is not None or self.bounds is not None):
+            raise FfcgsError("--table-z and --bounds belong to --depth (a mesh's table is at its lowest point)")
+        if self.depth is not None and self.validate and self.object is None:
+            raise FfcgsError("--validate with --depth needs --object: the physics test simulates the true mesh")
 
 
 def _protocols(name: str) -> tuple[str, ...]:
@@ -291,11 +308,27 @@ def run_grasp(cmd: GraspCmd) -> None:
 
     _outputs(("--out", cmd.out), ("--mcap", cmd.mcap), ("--png", cmd.png))
     hand = K.load_hand(cmd.hand)
-    mesh = mesh_io.load_mesh(cmd.object, scale=cmd.grasp.sdf.scale)
+    mesh = None if cmd.object is None else mesh_io.load_mesh(cmd.object, scale=cmd.grasp.sdf.scale)
     poses = None if cmd.poses is None else _read_poses(cmd.poses)
-    gs = synthesize(hand, mesh, cmd.grasp, Path(cmd.object).stem, poses=poses)
-    gs.arrays.update(mesh_io.identity(cmd.object, cmd.grasp.sdf.scale, mesh))
-    rows = summary_rows(gs)
+    grid, rows = None, []
+    if cmd.depth is not None:
+        from ffcgs_jax.cli.depth_commands import bounds_box, fuse_rows
+        from ffcgs_jax.geometry import depth_object
+
+        fused = depth_object.from_depth(cmd.depth, cmd.grasp.sdf.res, cmd.table_z, bounds_box(cmd.bounds),
+                                        margin=cmd.grasp.sdf.margin, min_margin=cmd.grasp.sdf.min_margin)
+        grid, rows = fused.grid, fuse_rows(fused, cmd.depth)
+        rows.append(("evaluation surface", f"the true mesh ({cmd.object})" if mesh is not None else
+                     "the fused surface (no mesh given: --object for the true one)"))
+    name = Path(cmd.object if cmd.object is not None else cmd.depth).stem
+    gs = synthesize(hand, fused.mesh if mesh is None else mesh, cmd.grasp, name, grid=grid, poses=poses)
+    if mesh is not None:
+        gs.arrays.update(mesh_io.identity(cmd.object, cmd.grasp.sdf.scale, mesh))
+    if cmd.depth is not None:
+        gs.arrays.update(depth_source=np.array(str(Path(cmd.depth).expanduser().resolve())),
+                         evaluation_surface=np.array("fused" if mesh is None else "mesh"),
+                         table_z=np.float64(fused.table_z), fuse_s=np.float64(fused.fuse_s))
+    rows += summary_rows(gs)
     if cmd.validate:
         gs, physics_rows = _validate(gs, hand.spec, mesh, cmd)
         rows += physics_rows
@@ -308,7 +341,7 @@ def run_grasp(cmd: GraspCmd) -> None:
     if cmd.png:
         from ffcgs_jax.viz import grasp_plot, render
 
-        image, _ = grasp_plot.grasps_image(hand, mesh, gs)
+        image, _ = grasp_plot.grasps_image(hand, fused.mesh if mesh is None else mesh, gs)
         render.save_png(image, cmd.png)
         print(f"wrote {cmd.png}")
 
@@ -553,6 +586,8 @@ COMMANDS: dict[str, tuple[type, Callable]] = {
     "objects": (ObjectsCmd, run_objects),
     "sdf": (SdfCmd, run_sdf),
     "hand": (HandCmd, run_hand),
+    "render-depth": (RenderDepthCmd, run_render_depth),
+    "fuse": (FuseCmd, run_fuse),
     "dataset build": (DatasetConfig, run_dataset_build),
     "dataset info": (DatasetInfoCmd, run_dataset_info),
 }

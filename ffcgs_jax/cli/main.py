@@ -42,8 +42,28 @@ def parse(argv: list[str]):
     if name not in COMMANDS:
         raise FfcgsError(f"unknown command {name!r}; commands: {', '.join(COMMANDS)}")
     cls, fn = COMMANDS[name]
+    if name == "grasp":
+        argv = _object_flag_as_positional(argv)
     cmd = with_overrides(cls, argv, f"ffcgs {name}", keep_prefixes=name in _PREFIXED)
     return fn, cmd
+
+
+def _object_flag_as_positional(argv: list[str]) -> list[str]:
+    """`ffcgs grasp --depth frames/ --object mug`: the object is grasp's positional argument; the flag reads better
+    beside --depth, so it is accepted for it."""
+    out, i = [], 0
+    while i < len(argv):
+        a = argv[i]
+        if a == "--object" and i + 1 < len(argv):
+            out.insert(0, argv[i + 1])
+            i += 2
+            continue
+        if a.startswith("--object="):
+            out.insert(0, a.split("=", 1)[1])
+        else:
+            out.append(a)
+        i += 1
+    return out
 
 
 def _one_line_warning(message, category, filename, lineno, file=None, line=None):

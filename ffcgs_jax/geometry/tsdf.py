@@ -24,12 +24,14 @@ solid would add walls at the edges of the views or a slab under the table. Avera
 votes with the object's readings (rather than carving with any one of them) keeps one mislabelled silhouette pixel
 from cutting through the object.
 
-Conversion (`to_gradient_sdf`, host NumPy/SciPy). The fused value is a truncated, projective (along the camera
-axis) distance, not the Euclidean distance the planner's queries assume away from the surface. So the zero level
-is taken from it with sub-voxel accuracy (the zero crossings along the grid's edges, by linear interpolation of the
-fused values), every voxel gets its Euclidean distance to those crossing points (a KD-tree), refined next to the
-surface to the first-order distance |D| / |grad D| (exact for a plane, whatever the viewing angle), signed by the
-fused sign; the gradient channels are central differences of that distance, normalised.
+Conversion (`to_gradient_sdf`, jit-compiled, part of the same compiled function as the fusion in `fuse`). The fused
+value is a truncated, projective (along the camera axis) distance, not the Euclidean distance the planner's queries
+assume away from the surface. So the zero level is taken from it with sub-voxel accuracy (the zero crossings along
+the grid's edges, by linear interpolation of the fused values), every voxel gets its Euclidean distance to those
+crossing points (jump flooding on the device; `to_gradient_sdf_reference` finds the exact nearest with a KD-tree on
+the host), refined next to the surface to the first-order distance |D| / |grad D| (exact for a plane, whatever the
+viewing angle), signed by the fused sign; the gradient channels are central differences of that distance,
+normalised.
 """
 
 from typing import NamedTuple
@@ -172,7 +174,7 @@ def integrate(depth: Float[Array | np.ndarray, "N H W"], K: Float[Array | np.nda
 
 
 # ----------------------------------------------------------------------------------------------------------------
-# From the fused volume to a GradientSDF (host)
+# From the fused volume to a GradientSDF: host reference (NumPy, SciPy's KD-tree), kept for the tests
 # ----------------------------------------------------------------------------------------------------------------
 
 
@@ -212,10 +214,10 @@ def _zero_crossings(V: np.ndarray, origin: np.ndarray, h: float) -> tuple[np.nda
     return np.concatenate(points), band
 
 
-def to_gradient_sdf(values: Float[np.ndarray, "R R R"], origin: Float[np.ndarray, " 3"], voxel_size: float,
-                    table_z: float) -> GradientSDF:
-    """The GradientSDF whose zero level is that of `values` (a truncated or projective field, negative inside),
-    with Euclidean distances away from it (module docstring: the conversion).
+def to_gradient_sdf_reference(values: Float[np.ndarray, "R R R"], origin: Float[np.ndarray, " 3"],
+                              voxel_size: float, table_z: float) -> GradientSDF:
+    """`to_gradient_sdf` on the host with exact nearest crossing points (a KD-tree): the reference the device
+    conversion is tested against (about 0.4 s at 64^3 on two cores).
 
     Args:
         values: (R, R, R) fused field on the voxel centres, metres.
@@ -230,12 +232,7 @@ def to_gradient_sdf(values: Float[np.ndarray, "R R R"], origin: Float[np.ndarray
     origin = np.asarray(origin, np.float64)
     h = float(voxel_size)
     inside = V < 0
-    if not inside.any():
-        raise FfcgsError("the fused volume has no voxel inside the object: no depth reading on the object lies in "
-                         "the grid (check the masks, the poses and the bounds)")
-    if inside.all():
-        raise FfcgsError("the fused volume is inside the object everywhere: no camera saw free space in the grid "
-                         "(check the poses: camera-to-world, OpenCV axes)")
+    _check_sides(bool(inside.any()), bool(inside.all()))
     points, band = _zero_crossings(V, origin, h)
     dist = cKDTree(points).query(_centres(origin, h, V.shape[0]).reshape(-1, 3), workers=-1)[0].reshape(V.shape)
     # Next to the surface the crossing points are too sparse (one per grid edge: a voxel 0.7 h inside a diagonal
@@ -257,9 +254,159 @@ def to_gradient_sdf(values: Float[np.ndarray, "R R R"], origin: Float[np.ndarray
                        table_z=jnp.asarray(float(table_z)))
 
 
+# ----------------------------------------------------------------------------------------------------------------
+# From the fused volume to a GradientSDF (JAX: the path `fuse` takes)
+# ----------------------------------------------------------------------------------------------------------------
+
+_JFA_CLEANUP = (2, 1)  # extra jump-flooding passes after the halving ones (JFA+2: mends most of JFA's rare misses)
+
+
+def _shift(x, offset, fill):
+    """x[i + offset] along each of the first three axes (static offsets), `fill` where that falls off the grid."""
+    r = x.shape[0]
+    for axis, o in enumerate(offset):
+        if o == 0:
+            continue
+        pad = [(0, 0)] * x.ndim
+        pad[axis] = (0, o) if o > 0 else (-o, 0)
+        x = jnp.pad(x, pad, constant_values=fill)
+        x = jax.lax.slice_in_dim(x, o if o > 0 else 0, (o if o > 0 else 0) + r, axis=axis)
+    return x
+
+
+def _seeds(V):
+    """Each voxel's nearest zero crossing on the grid edges it touches ((R, R, R, 3) voxel coordinates; inf where
+    no edge of the voxel crosses), and the band mask."""
+    r = V.shape[0]
+    ijk = jnp.stack(jnp.meshgrid(*(jnp.arange(r, dtype=V.dtype),) * 3, indexing="ij"), -1)
+    best = jnp.full(V.shape + (3,), jnp.inf, V.dtype)
+    best_d = jnp.full(V.shape, jnp.inf, V.dtype)
+    for axis in range(3):
+        for o in (1, -1):
+            e = [0, 0, 0]
+            e[axis] = o
+            other = _shift(V, e, jnp.nan)
+            cross = (V < 0) != (other < 0)  # NaN (off the grid) compares False: no crossing
+            t = V / jnp.where(cross, V - other, 1.0)  # share of the way to the neighbour, in [0, 1]
+            d = jnp.where(cross, t, jnp.inf)
+            point = ijk.at[..., axis].add(o * t)
+            take = d < best_d
+            best = jnp.where(take[..., None], point, best)
+            best_d = jnp.where(take, d, best_d)
+    return best, jnp.isfinite(best_d)
+
+
+def _jump_flood(seeds):
+    """Distance (voxels) from every voxel to its nearest seed by jump flooding (Rong and Tan 2006): passes of step
+    R/2, R/4, ..., 1, then `_JFA_CLEANUP`, each voxel taking the nearest of its own seed and those held by the 26
+    voxels a step away. Scans over passes and offsets (not unrolled loops) keep the compile under a second."""
+    r = seeds.shape[0]
+    pad = r // 2
+    ijk = jnp.stack(jnp.meshgrid(*(jnp.arange(r, dtype=seeds.dtype),) * 3, indexing="ij"), -1)
+    steps, k = [], r // 2
+    while k >= 1:
+        steps.append(k)
+        k //= 2
+    offsets = np.stack(np.meshgrid(*([-1, 0, 1],) * 3, indexing="ij"), -1).reshape(-1, 3)
+    offsets = jnp.asarray(offsets[np.abs(offsets).sum(1) > 0], jnp.int32)
+
+    def one_pass(best, k):
+        padded = jnp.pad(best, ((pad, pad),) * 3 + ((0, 0),), constant_values=jnp.inf)
+
+        def candidate(carry, o):
+            b, bd = carry
+            start = jnp.append(pad + o * k, 0)  # one index dtype for all four (int32, also under x64)
+            c = jax.lax.dynamic_slice(padded, tuple(start), (r, r, r, 3))
+            d = jnp.sum((c - ijk) ** 2, -1)
+            take = d < bd
+            return (jnp.where(take[..., None], c, b), jnp.where(take, d, bd)), None
+
+        (best, _), _ = jax.lax.scan(candidate, (best, jnp.sum((best - ijk) ** 2, -1)), offsets)
+        return best, None
+
+    best, _ = jax.lax.scan(one_pass, seeds, jnp.asarray(steps + list(_JFA_CLEANUP), jnp.int32))
+    return jnp.sqrt(jnp.sum((best - ijk) ** 2, -1))
+
+
+def _dilate(mask):
+    """Binary dilation by the 6-neighbour cross (scipy.ndimage.binary_dilation's default)."""
+    out = mask
+    for axis in range(3):
+        for o in (1, -1):
+            e = [0, 0, 0]
+            e[axis] = o
+            out = out | _shift(mask, e, False)
+    return out
+
+
+def _to_grid(V, h):
+    """(R, R, R, 4) distance and unit gradient from the resolved field V (module docstring: the conversion)."""
+    seeds, band = _seeds(V)
+    dist = h * _jump_flood(seeds)
+    slope = jnp.linalg.norm(jnp.stack(jnp.gradient(V, h), -1), axis=-1)
+    first = jnp.abs(V) / jnp.where(slope > 0, slope, 1.0)
+    clipped = _dilate(jnp.abs(V) >= jnp.abs(V).max() * (1 - 1e-9))
+    near = (band | ~clipped) & (slope > 0) & (first < _FIRST_ORDER_REACH * h)
+    dist = jnp.where(near, jnp.minimum(dist, first), dist)
+    sd = jnp.where(V < 0, -dist, dist)
+    grad = jnp.stack(jnp.gradient(sd, h), -1)
+    norm = jnp.linalg.norm(grad, axis=-1, keepdims=True)
+    up = jnp.zeros_like(grad).at[..., 2].set(1.0)
+    grad = jnp.where(norm > 1e-12, grad / jnp.where(norm > 1e-12, norm, 1.0), up)  # flat spots: any unit vector
+    return jnp.concatenate([sd[..., None], grad], -1)
+
+
+def _check_sides(any_inside: bool, all_inside: bool) -> None:
+    if not any_inside:
+        raise FfcgsError("the fused volume has no voxel inside the object: no depth reading on the object lies in "
+                         "the grid (check the masks, the poses and the bounds)")
+    if all_inside:
+        raise FfcgsError("the fused volume is inside the object everywhere: no camera saw free space in the grid "
+                         "(check the poses: camera-to-world, OpenCV axes)")
+
+
+@jax.jit
+def _convert(V, h):
+    return _to_grid(V, h), (V < 0).any(), (V < 0).all()
+
+
+def to_gradient_sdf(values: Float[Array | np.ndarray, "R R R"], origin: Float[np.ndarray, " 3"],
+                    voxel_size: float, table_z: float) -> GradientSDF:
+    """The GradientSDF whose zero level is that of `values` (a truncated or projective field, negative inside),
+    with Euclidean distances away from it (module docstring: the conversion), jit-compiled: the distance to the
+    zero crossings comes from jump flooding instead of a KD-tree (it agrees with `to_gradient_sdf_reference`
+    except for rare voxels far from the surface, a fraction of a voxel off: tests/geometry/test_tsdf.py).
+
+    Args:
+        values: (R, R, R) fused field on the voxel centres, metres.
+        origin: (3,) centre of voxel [0, 0, 0].
+        voxel_size: metres.
+        table_z: table height stored in the result.
+
+    Returns:
+        The GradientSDF, arrays in JAX's default float dtype.
+    """
+    fdt = jnp.result_type(float)
+    grid, any_inside, all_inside = _convert(jnp.asarray(values, fdt), jnp.asarray(voxel_size, fdt))
+    _check_sides(bool(any_inside), bool(all_inside))
+    return GradientSDF(grid=grid, origin=jnp.asarray(origin, fdt), voxel_size=jnp.asarray(voxel_size, fdt),
+                       table_z=jnp.asarray(float(table_z), fdt))
+
+
+def _fuse_device(depth, mask, K, poses, origin, h, trunc, table_z, res):
+    volume = _integrate(depth, mask, K, poses, origin, h, trunc, res)
+    V = jnp.where(volume.weight > 0, volume.tsdf, jnp.where(volume.shadow, -trunc, trunc))
+    z = origin[2] + h * jnp.arange(res, dtype=V.dtype)
+    V = jnp.maximum(V, table_z - z[None, None, :])
+    return _to_grid(V, h), (V < 0).any(), (V < 0).all()
+
+
+_fuse_jit = jax.jit(_fuse_device, static_argnames="res")
+
+
 def fuse(frames: depth_io.Frames, res: int = 64, trunc_voxels: float = 4.0,
          bounds: Float[np.ndarray, "2 3"] | None = None, table_z: float | None = None, margin: float = 0.15,
-         min_margin: float = 0.01) -> GradientSDF:
+         min_margin: float = 0.01, on_device: bool | None = None) -> GradientSDF:
     """Depth frames of one object fused into its GradientSDF.
 
     Typical use: `frames, tz = depth_io.remove_table(depth_io.load_frames(path))`, then `fuse(frames, table_z=tz)`.
@@ -276,6 +423,10 @@ def fuse(frames: depth_io.Frames, res: int = 64, trunc_voxels: float = 4.0,
             background (as `remove_table` with this height), nothing below it is object, and the result keeps it.
             None: no table; the result's table_z is the bottom of the grid.
         margin, min_margin: see `bounds`.
+        on_device: convert the fused volume to the GradientSDF in the same compiled function as the fusion
+            (`to_gradient_sdf`, jump flooding) rather than on the host (`to_gradient_sdf_reference`, a KD-tree).
+            None: on the device when JAX's backend is not the CPU; on a CPU the host's KD-tree is the faster of
+            the two (bench/depth.py --speed).
 
     Returns:
         The GradientSDF, arrays in JAX's default float dtype.
@@ -302,6 +453,16 @@ def fuse(frames: depth_io.Frames, res: int = 64, trunc_voxels: float = 4.0,
             lo[2] = min(lo[2], table_z)  # the object's hidden underside reaches the table
         origin, h = grid_frame(np.stack([lo, hi]), res, margin, min_margin)
     trunc = trunc_voxels * h
-    volume = integrate(frames.depth, frames.K, frames.poses, origin, h, res, trunc, mask=depth_io.object_mask(frames))
-    values = resolve(volume, trunc, origin, h, table_z)
-    return to_gradient_sdf(values, origin, h, origin[2] if table_z is None else table_z)
+    if not (jax.default_backend() != "cpu" if on_device is None else on_device):
+        volume = integrate(frames.depth, frames.K, frames.poses, origin, h, res, trunc,
+                           mask=depth_io.object_mask(frames))
+        values = resolve(volume, trunc, origin, h, table_z)
+        return to_gradient_sdf_reference(values, origin, h, origin[2] if table_z is None else table_z)
+    tz = -np.inf if table_z is None else float(table_z)  # no table: nothing to cut off below it
+    fdt = jnp.result_type(float)
+    args = (frames.depth, depth_io.object_mask(frames), frames.K, frames.poses, origin, h, trunc, tz)
+    grid, any_inside, all_inside = _fuse_jit(*(jnp.asarray(a, bool if i == 1 else fdt) for i, a in enumerate(args)),
+                                             res=int(res))
+    _check_sides(bool(any_inside), bool(all_inside))
+    return GradientSDF(grid=grid, origin=jnp.asarray(origin, fdt), voxel_size=jnp.asarray(h, fdt),
+                       table_z=jnp.asarray(origin[2] if table_z is None else table_z, fdt))

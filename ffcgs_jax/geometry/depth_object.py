@@ -1,0 +1,74 @@
+"""An object seen only through depth frames, ready for the grasp planner: `from_depth`.
+
+The steps a user would otherwise chain by hand: read the frames (`depth_io.load_frames`), find the table (the
+given height, or RANSAC on the readings: `depth_io.remove_table`), fuse into a Gradient-SDF (`tsdf.fuse`), and
+take its zero level as a mesh (`surface_nets`) for what needs one (the evaluation's closest points when no true
+mesh is given, pictures). The object frame is the cameras' world frame: the grid sits where the object was seen,
+and the table is at its fused height.
+"""
+
+import pathlib
+import time
+from typing import NamedTuple
+
+import numpy as np
+import trimesh
+
+from ffcgs_jax.errors import FfcgsError
+from ffcgs_jax.geometry import depth_io, surface_nets, tsdf
+from ffcgs_jax.geometry.sdf import GradientSDF
+
+
+class FusedObject(NamedTuple):
+    """An object fused from depth frames.
+
+    Attributes:
+        grid: the Gradient-SDF (object frame = the cameras' world frame).
+        mesh: the grid's zero level as a triangle mesh, metres (closed above the table: the underside the cameras
+            cannot see lies on the table plane).
+        table_z: the table height in metres (given, or fitted to the readings).
+        table_fitted: True when the table height came from the RANSAC fit.
+        frames: the frames as fused (masks narrowed by the table and the bounds).
+        fuse_s: seconds of the fusion and conversion (not the reading).
+    """
+
+    grid: GradientSDF
+    mesh: trimesh.Trimesh
+    table_z: float
+    table_fitted: bool
+    frames: depth_io.Frames
+    fuse_s: float
+
+
+def from_depth(source: str | pathlib.Path | depth_io.Frames, res: int = 32, table_z: float | None = None,
+               bounds=None, trunc_voxels: float = 4.0, margin: float = 0.15, min_margin: float = 0.01) -> FusedObject:
+    """Depth frames of one object on a table to a `FusedObject`.
+
+    Args:
+        source: a depth folder or .npz (`depth_io.load_frames`), or `Frames` already in memory.
+        res: voxels along each axis of the grid (16-128).
+        table_z: table height in metres; None: fitted to the readings (RANSAC on near-horizontal planes).
+        bounds: (2, 3) workspace box (min and max corners, metres) or None (`tsdf.fuse`).
+        trunc_voxels, margin, min_margin: as `tsdf.fuse`.
+
+    Returns:
+        The fused object.
+
+    Raises:
+        FfcgsError with one line: unreadable frames, no table found (give table_z), nothing left on the object.
+    """
+    frames = depth_io.load_frames(source) if not isinstance(source, depth_io.Frames) else \
+        depth_io.check_frames(source)
+    fitted = table_z is None
+    if bounds is not None:
+        bounds = depth_io.check_bounds(bounds)
+        frames = depth_io.crop(frames, bounds)  # before the fit, so clutter outside the workspace cannot win it
+    frames, table_z = depth_io.remove_table(frames, table_z)
+    if not (depth_io.object_mask(frames) & (frames.depth > 0)).any():
+        raise FfcgsError(f"no depth reading left on the object after removing the table at z = {table_z:.4f} m "
+                         f"({'fitted' if fitted else 'given'}){' and the bounds' if bounds is not None else ''}")
+    t0 = time.perf_counter()
+    grid = tsdf.fuse(frames, res, trunc_voxels, bounds, table_z, margin, min_margin)
+    values = np.asarray(grid.grid[..., 0], np.float64)
+    mesh = surface_nets.zero_level_mesh(values, np.asarray(grid.origin, np.float64), float(grid.voxel_size))
+    return FusedObject(grid, mesh, float(table_z), fitted, frames, time.perf_counter() - t0)
