@@ -20,6 +20,7 @@ _API = {
     "load_hand": ("ffcgs_jax.hand.kinematics", "load_hand"),
     "load_mesh": ("ffcgs_jax.geometry.mesh_io", "load_mesh"),
     "build_sdf": ("ffcgs_jax.geometry.sdf", "build_sdf"),
+    "from_depth": ("ffcgs_jax.geometry.depth_object", "from_depth"),
     "synthesize": ("ffcgs_jax.synthesis.grasp", "synthesize"),
     "evaluate_physics": ("ffcgs_jax.physics.runner", "evaluate"),
     "GraspConfig": ("ffcgs_jax.synthesis.config", "GraspConfig"),
@@ -36,6 +37,7 @@ if TYPE_CHECKING:  # what the lazy names are, for type checkers and editors
     from ffcgs_jax.cli.jax_cache import enable as enable_compilation_cache  # noqa: F401
     from ffcgs_jax.errors import FfcgsError  # noqa: F401
     from ffcgs_jax.geometry.config import SDFConfig  # noqa: F401
+    from ffcgs_jax.geometry.depth_object import from_depth  # noqa: F401
     from ffcgs_jax.geometry.mesh_io import load_mesh  # noqa: F401
     from ffcgs_jax.geometry.sdf import build_sdf  # noqa: F401
     from ffcgs_jax.hand.kinematics import load_hand  # noqa: F401
