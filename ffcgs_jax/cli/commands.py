@@ -239,9 +239,8 @@ class GraspCmd:
 
     Attributes:
         object: built-in name (see `ffcgs objects`) or a mesh file (obj, stl, ply, off, glb), metres, z up. With
-            `--depth`, optional (also as `--object`): the true object, in the cameras' world frame, on which the
-            grasps are evaluated (epsilon, contacts) and `--validate` simulates; without it the evaluation uses the
-            fused surface.
+            `--depth`, optional (also as `--object`): the true object, in the cameras' world frame: the grasps,
+            filtered on the fused surface, are also measured on it (the *_true fields) and `--validate` simulates it.
         depth: plan on an object seen by depth cameras instead of a mesh: a depth folder or .npz (README: "Depth
             input"), fused into the grid of `--res` voxels; the object frame is the cameras' world frame.
         table_z: with `--depth`: the table height in metres; default: fitted to the readings.
@@ -304,7 +303,7 @@ def run_grasp(cmd: GraspCmd) -> None:
     from ffcgs_jax.geometry import mesh_io
     from ffcgs_jax.hand import kinematics as K
     from ffcgs_jax.synthesis import grasp_io
-    from ffcgs_jax.synthesis.grasp import summary_rows, synthesize
+    from ffcgs_jax.synthesis.grasp import check_on_mesh, summary_rows, synthesize
 
     _outputs(("--out", cmd.out), ("--mcap", cmd.mcap), ("--png", cmd.png))
     hand = K.load_hand(cmd.hand)
@@ -317,18 +316,23 @@ def run_grasp(cmd: GraspCmd) -> None:
 
         fused = depth_object.from_depth(cmd.depth, cmd.grasp.sdf.res, cmd.table_z, bounds_box(cmd.bounds),
                                         margin=cmd.grasp.sdf.margin, min_margin=cmd.grasp.sdf.min_margin)
-        grid, rows = fused.grid, fuse_rows(fused, cmd.depth)
-        rows.append(("evaluation surface", f"the true mesh ({cmd.object})" if mesh is not None else
-                     "the fused surface (no mesh given: --object for the true one)"))
+        grid = fused.grid
+        rows = fuse_rows(fused, cmd.depth) + [("evaluation surface", "the fused surface (filters, epsilon, "
+                                               "contacts); --object adds the true mesh's figures")]
     name = Path(cmd.object if cmd.object is not None else cmd.depth).stem
-    gs = synthesize(hand, fused.mesh if mesh is None else mesh, cmd.grasp, name, grid=grid, poses=poses)
+    # From depth, the filters and epsilon read the fused surface, as a robot without the mesh would: which grasps
+    # are returned must not depend on whether a mesh was also given. The true mesh adds the *_true figures.
+    gs = synthesize(hand, mesh if cmd.depth is None else fused.mesh, cmd.grasp, name, grid=grid, poses=poses)
     if mesh is not None:
         gs.arrays.update(mesh_io.identity(cmd.object, cmd.grasp.sdf.scale, mesh))
+    rows += summary_rows(gs)
     if cmd.depth is not None:
         gs.arrays.update(depth_source=np.array(str(Path(cmd.depth).expanduser().resolve())),
-                         evaluation_surface=np.array("fused" if mesh is None else "mesh"),
-                         table_z=np.float64(fused.table_z), fuse_s=np.float64(fused.fuse_s))
-    rows += summary_rows(gs)
+                         evaluation_surface=np.array("fused"), table_z=np.float64(fused.table_z),
+                         fuse_s=np.float64(fused.fuse_s))
+        if mesh is not None:
+            gs.arrays.update(check_on_mesh(hand, mesh, gs, grid))
+            rows += true_mesh_rows(gs)
     if cmd.validate:
         gs, physics_rows = _validate(gs, hand.spec, mesh, cmd)
         rows += physics_rows
@@ -341,9 +345,19 @@ def run_grasp(cmd: GraspCmd) -> None:
     if cmd.png:
         from ffcgs_jax.viz import grasp_plot, render
 
-        image, _ = grasp_plot.grasps_image(hand, fused.mesh if mesh is None else mesh, gs)
+        image, _ = grasp_plot.grasps_image(hand, mesh if mesh is not None else fused.mesh, gs)
         render.save_png(image, cmd.png)
         print(f"wrote {cmd.png}")
+
+
+def true_mesh_rows(gs) -> list[tuple[str, str]]:
+    v, n = gs["valid"], int(gs["valid"].sum())
+    tips = gs["contacts"].shape[1]
+    return [("on the true mesh: force closure (valid)", f"{int(gs['force_closure_true'][v].sum())} / {n}"),
+            ("on the true mesh: all tips touching (valid)", f"{int((gs['n_contacts_true'][v] == tips).sum())} / {n}"
+                                                            f"  (within {1000 * gs.config.contact_tol:g} mm)"),
+            ("on the true mesh: median |tip distance| (mm)",
+             f"{np.median(np.abs(gs['contact_dist_true'][v])) * 1000:.2f}" if n else "-")]
 
 
 def _validate(gs, spec, mesh, cmd: GraspCmd):

@@ -398,10 +398,11 @@ def check_bounds(bounds) -> Float[np.ndarray, "2 3"]:
     return b
 
 
-def crop(frames: Frames, bounds: Float[np.ndarray, "2 3"]) -> Frames:
-    """The frames with readings outside the world box `bounds` (min, max corners, metres) moved to the background."""
+def crop(frames: Frames, bounds: Float[np.ndarray, "2 3"], points: np.ndarray | None = None) -> Frames:
+    """The frames with readings outside the world box `bounds` (min, max corners, metres) moved to the background.
+    `points`: `world_points(frames)` when the caller has it already (they take 80 ms for five 640 x 480 frames)."""
     b = check_bounds(bounds)
-    p = world_points(frames)
+    p = world_points(frames) if points is None else points
     inside = ((p >= b[0]) & (p <= b[1])).all(-1)
     return frames._replace(mask=object_mask(frames) & inside)
 
@@ -455,7 +456,8 @@ def fit_table(points: Float[np.ndarray, "P 3"], tol: float = 0.003, max_tilt_deg
 
 
 def remove_table(data: Frames | Float[np.ndarray, "P 3"], table_z: float | None = None, band: float = 0.005,
-                 tol: float = 0.003, seed: int = 0) -> tuple[Frames | Float[np.ndarray, "kept 3"], float]:
+                 tol: float = 0.003, seed: int = 0,
+                 points: np.ndarray | None = None) -> tuple[Frames | Float[np.ndarray, "kept 3"], float]:
     """Readings on or under the table removed: those less than `band` above the table plane.
 
     Args:
@@ -465,12 +467,16 @@ def remove_table(data: Frames | Float[np.ndarray, "P 3"], table_z: float | None 
         band: metres above the plane that still count as table (noise, the object's contact rim).
         tol: inlier distance of the fit.
         seed: seed of the fit.
+        points: for frames, `world_points(data)` when the caller has it already.
 
     Returns:
         The data without the table, and the table height (metres) for `tsdf.fuse(..., table_z=...)`.
     """
     frames = data if isinstance(data, Frames) else None
-    p = world_points(frames) if frames is not None else np.asarray(data, np.float64)
+    if frames is None:
+        p = np.asarray(data, np.float64)
+    else:
+        p = world_points(frames) if points is None else points
     if table_z is None:
         flat = p.reshape(-1, 3)
         plane, table_z = fit_table(flat[~np.isnan(flat[:, 0])], tol=tol, seed=seed)

@@ -29,7 +29,7 @@ class FusedObject(NamedTuple):
         table_z: the table height in metres (given, or fitted to the readings).
         table_fitted: True when the table height came from the RANSAC fit.
         frames: the frames as fused (masks narrowed by the table and the bounds).
-        fuse_s: seconds of the fusion and conversion (not the reading).
+        fuse_s: seconds from the frames in memory to the grid and its mesh (table fit included, not the reading).
     """
 
     grid: GradientSDF
@@ -60,15 +60,16 @@ def from_depth(source: str | pathlib.Path | depth_io.Frames, res: int = 32, tabl
     frames = depth_io.load_frames(source) if not isinstance(source, depth_io.Frames) else \
         depth_io.check_frames(source)
     fitted = table_z is None
+    t0 = time.perf_counter()
+    points = depth_io.world_points(frames)
     if bounds is not None:
         bounds = depth_io.check_bounds(bounds)
-        frames = depth_io.crop(frames, bounds)  # before the fit, so clutter outside the workspace cannot win it
-    frames, table_z = depth_io.remove_table(frames, table_z)
+        frames = depth_io.crop(frames, bounds, points)  # before the fit, so clutter outside the workspace cannot win
+    frames, table_z = depth_io.remove_table(frames, table_z, points=points)
     if not (depth_io.object_mask(frames) & (frames.depth > 0)).any():
         raise FfcgsError(f"no depth reading left on the object after removing the table at z = {table_z:.4f} m "
                          f"({'fitted' if fitted else 'given'}){' and the bounds' if bounds is not None else ''}")
-    t0 = time.perf_counter()
-    grid = tsdf.fuse(frames, res, trunc_voxels, bounds, table_z, margin, min_margin)
+    grid = tsdf.fuse(frames, res, trunc_voxels, bounds, table_z, margin, min_margin, points=points)
     values = np.asarray(grid.grid[..., 0], np.float64)
     mesh = surface_nets.zero_level_mesh(values, np.asarray(grid.origin, np.float64), float(grid.voxel_size))
     return FusedObject(grid, mesh, float(table_z), fitted, frames, time.perf_counter() - t0)

@@ -406,7 +406,7 @@ _fuse_jit = jax.jit(_fuse_device, static_argnames="res")
 
 def fuse(frames: depth_io.Frames, res: int = 64, trunc_voxels: float = 4.0,
          bounds: Float[np.ndarray, "2 3"] | None = None, table_z: float | None = None, margin: float = 0.15,
-         min_margin: float = 0.01, on_device: bool | None = None) -> GradientSDF:
+         min_margin: float = 0.01, on_device: bool | None = None, points: np.ndarray | None = None) -> GradientSDF:
     """Depth frames of one object fused into its GradientSDF.
 
     Typical use: `frames, tz = depth_io.remove_table(depth_io.load_frames(path))`, then `fuse(frames, table_z=tz)`.
@@ -427,6 +427,7 @@ def fuse(frames: depth_io.Frames, res: int = 64, trunc_voxels: float = 4.0,
             (`to_gradient_sdf`, jump flooding) rather than on the host (`to_gradient_sdf_reference`, a KD-tree).
             None: on the device when JAX's backend is not the CPU; on a CPU the host's KD-tree is the faster of
             the two (bench/depth.py --speed).
+        points: `depth_io.world_points(frames)` when the caller has it already (80 ms for five 640 x 480 frames).
 
     Returns:
         The GradientSDF, arrays in JAX's default float dtype.
@@ -436,14 +437,14 @@ def fuse(frames: depth_io.Frames, res: int = 64, trunc_voxels: float = 4.0,
     check_range("trunc_voxels", trunc_voxels, 1, 16)
     check_range("margin", margin, 0.0, 2.0)
     check_range("min_margin", min_margin, 0.0, 1.0)
+    p = depth_io.world_points(frames) if points is None else points
     if table_z is not None:
-        frames, table_z = depth_io.remove_table(frames, table_z)  # idempotent after the caller's own removal
+        frames, table_z = depth_io.remove_table(frames, table_z, points=p)  # idempotent after the caller's own
     if bounds is not None:
         box = depth_io.check_bounds(bounds)
-        frames = depth_io.crop(frames, box)
+        frames = depth_io.crop(frames, box, points=p)
         origin, h = grid_frame(box, res)
     else:
-        p = depth_io.world_points(frames)
         p = p[depth_io.object_mask(frames) & (frames.depth > 0)]
         if not len(p):
             raise FfcgsError("no depth reading on the object in any frame (all readings are zero, outside the masks "

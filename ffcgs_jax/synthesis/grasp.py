@@ -196,10 +196,7 @@ def _finish(hand, mesh, target, cfg, out: DeviceOut, synthesis_s, compile_s, obj
     q = np.asarray(opt.q, np.float64)
     contacts = np.asarray(opt.final.contacts, np.float64)
     penetration = np.asarray(out.penetration, np.float64)
-    ev = metrics.evaluate(mesh, contacts, q, np.asarray(hand.lower), np.asarray(hand.upper),
-                          metrics.MetricsConfig(mu=cfg.energy.mu, cone_edges=cfg.energy.cone_edges, d0=cfg.energy.d0,
-                                                a_c=cfg.energy.a_c, a_q=cfg.energy.a_q,
-                                                basis_size=cfg.energy.basis_size, contact_tol=cfg.contact_tol),
+    ev = metrics.evaluate(mesh, contacts, q, np.asarray(hand.lower), np.asarray(hand.upper), _metrics_config(cfg),
                           centre=np.asarray(target.centre, np.float64), radius=float(target.radius),
                           penetration=penetration)
     E_c = np.asarray(opt.final.E_c, np.float64)
@@ -246,6 +243,24 @@ def _finish(hand, mesh, target, cfg, out: DeviceOut, synthesis_s, compile_s, obj
     arrays["score"] = score.score(arrays)
     trace = {k: np.asarray(getattr(opt.trace, k), np.float64) for k in ("E", "E_g", "E_c")}
     return GraspSet(arrays, trace, cfg, object_name)
+
+
+def _metrics_config(cfg: GraspConfig) -> metrics.MetricsConfig:
+    e = cfg.energy
+    return metrics.MetricsConfig(mu=e.mu, cone_edges=e.cone_edges, d0=e.d0, a_c=e.a_c, a_q=e.a_q,
+                                 basis_size=e.basis_size, contact_tol=cfg.contact_tol)
+
+
+def check_on_mesh(hand: Hand, mesh: trimesh.Trimesh, gs: GraspSet, grid: sdf_mod.GradientSDF) -> dict[str, np.ndarray]:
+    """The grasps' contact and force-closure figures measured on another surface than the one they were filtered
+    on (grasps planned from depth frames, checked on the true mesh): `epsilon_true`, `force_closure_true`,
+    `contact_dist_true` and `n_contacts_true`, as `epsilon` ... `n_contacts` (torque origin and scale from `grid`,
+    as the synthesis)."""
+    target = make_target(grid)
+    ev = metrics.evaluate(mesh, gs["contacts"], gs["q"], np.asarray(hand.lower), np.asarray(hand.upper),
+                          _metrics_config(gs.config), centre=np.asarray(target.centre, np.float64),
+                          radius=float(target.radius))
+    return {f"{k}_true": np.asarray(ev[k]) for k in ("epsilon", "force_closure", "contact_dist", "n_contacts")}
 
 
 def summary_rows(gs: GraspSet) -> list[tuple[str, str]]:

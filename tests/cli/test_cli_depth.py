@@ -13,6 +13,7 @@ import trimesh
 from PIL import Image
 
 from ffcgs_jax.cli import main as cli_main
+from ffcgs_jax.evaluation import metrics
 from ffcgs_jax.geometry import depth_io, mesh_io, sdf
 from ffcgs_jax.synthesis import grasp_io
 
@@ -64,11 +65,11 @@ def test_fuse_writes_an_sdf_the_planner_reads(capsys, frames_dir, tmp_path):
     assert (tmp_path / "s.png").stat().st_size > 0
 
 
-def test_grasp_from_depth_evaluates_on_the_fused_surface(capsys, frames_dir, tmp_path):
-    out = tmp_path / "g.npz"
+def test_grasp_from_depth_evaluates_on_the_fused_surface(capsys, frames_dir):
+    out = frames_dir / "alone.npz"
     code, text, err = run(capsys, "grasp", "--depth", frames_dir / "frames", *SMALL, "--out", out)
     assert code == 0, err
-    assert "the fused surface (no mesh given" in text
+    assert "the fused surface (filters, epsilon, contacts)" in text and "on the true mesh" not in text
     data = grasp_io.load_npz(out)
     assert str(data["evaluation_surface"]) == "fused" and "object_source" not in data
     assert str(data["depth_source"]) == str((frames_dir / "frames").resolve())
@@ -83,9 +84,17 @@ def test_grasp_from_depth_with_the_true_object(capsys, frames_dir, tmp_path):
     code, text, err = run(capsys, "grasp", "--depth", frames_dir / "frames", "--object", "box", *SMALL,
                           "--out", out)
     assert code == 0, err
-    assert "the true mesh (box)" in text
     data = grasp_io.load_npz(out)
-    assert str(data["evaluation_surface"]) == "mesh" and str(data["object_source"]) == "box"
+    assert str(data["evaluation_surface"]) == "fused" and str(data["object_source"]) == "box"
+    # filtered on the fused surface (the same grasps as without --object), measured on the true mesh too
+    alone = grasp_io.load_npz(frames_dir / "alone.npz") if (frames_dir / "alone.npz").exists() else None
+    if alone is not None:
+        np.testing.assert_array_equal(data["valid"], alone["valid"])
+    box = mesh_io.load_mesh("box")
+    closest, _, signed = metrics.mesh_contacts(box, data["contacts"])
+    np.testing.assert_allclose(data["contact_dist_true"], signed, atol=1e-9)
+    assert (data["n_contacts_true"] == (np.abs(signed) <= 0.002).sum(1)).all()
+    assert re.search(r"on the true mesh: force closure \(valid\)\s+\d+ / \d+", text), text
 
 
 @pytest.mark.parametrize("argv, message", [
