@@ -10,13 +10,14 @@ on the fused SDF against grasps planned on the mesh's own SDF; `--speed`: the ti
 Accuracy (the default). Per object (`--objects`, groups as bench/quality.py) and `--views` count, depth frames of
 `--width` x `--height` are rendered (`depth_render.render_views`: table plane at the mesh's lowest z, the renderer's
 object masks), used clean and with RealSense-like noise (sigma = 0.0015 z^2, 2 % dropout, seed `--seed`) as
-`--noise` asks, and fused by `depth_object.from_depth` at `--res` (table height by RANSAC, as for a real camera).
+`--noise` asks, and fused by `depth_object.from_depth` at `--res` (table height by RANSAC, as for a real camera;
+  no object masks unless `--masks`).
 - surface: `--points` points sampled on the true mesh (seed `--seed`); their unsigned distance to the fused zero
   level is |fused SDF| there (`sdf.distance`, the planner's own interpolation). Per object the median and p95 in
   voxels of the fused grid (and mm); a row shows the median over objects of each, and the worst object's p95.
 - grasps: `synthesize` with `--sampler` (package defaults otherwise) on the fused grid, its filters (every tip
-  within contact_tol of the surface, force closure) reading the fused zero level, as `ffcgs grasp --depth` and a
-  robot without the mesh do (the object frame is the cameras' world, the mesh's own frame); `--filter-mesh true`
+  within contact_tol of the surface, force closure) reading the fused SDF's zero level (`metrics.sdf_contacts`), as
+  `ffcgs grasp --depth` and a robot without the mesh do (the object frame is the cameras' world, the mesh's own frame); `--filter-mesh true`
   gives them the true mesh instead (few grasps pass: the fingertips rest on the fused surface, 1-4 mm from the
   true one, and contact_tol is 2 mm). The `mesh` row plans on the mesh's own SDF. Physics as
   bench/quality.py (`runner.evaluate`, PhysicsConfig(friction=0.6), lift-shake and six-dir, the grasps' squeeze
@@ -81,8 +82,13 @@ def parser() -> Parser:
     ap.add_argument("--seed", type=Q._int_at_least(0), default=0)
     ap.add_argument("--filter-mesh", default="fused", choices=("true", "fused"),
                     help="mesh that synthesize's contact and force-closure filters read for fused-planned grasps: "
-                         "the fused zero level (default: as `ffcgs grasp --depth` and a robot without the mesh) "
-                         "or the true one")
+                         "the fused SDF's zero level (default: as `ffcgs grasp --depth` and a robot without the "
+                         "mesh) or the true mesh")
+    ap.add_argument("--masks", action="store_true",
+                    help="give fusion the renderer's object masks (default: none, as `ffcgs render-depth` writes and "
+                         "a bare depth camera gives: the table fit separates the object)")
+    ap.add_argument("--no-mesh-row", dest="mesh_row", action="store_false",
+                    help="skip the mesh-planned row (when another run has it)")
     ap.add_argument("--physics", default="on", choices=("on", "off"), help="off: surface figures only")
     ap.add_argument("--friction", type=Q._positive_float, default=0.6)
     ap.add_argument("--backend", default="auto", choices=BACKENDS, help="physics backend")
@@ -202,7 +208,7 @@ def grasp_job(hand, mesh, name: str, cfg: GraspConfig, args, grid=None, filter_m
 
 
 def conditions(args) -> list[tuple[str, int | None, bool]]:
-    return [("mesh", None, False)] + [(f"{v} view{'s' * (v > 1)}, {'noisy' if z else 'clean'}", v, z)
+    return [("mesh", None, False)] * args.mesh_row + [(f"{v} view{'s' * (v > 1)}, {'noisy' if z else 'clean'}", v, z)
                                       for v in args.view_list for z in args.noise_list]
 
 
@@ -232,6 +238,7 @@ def run(args) -> dict:
             "physics": args.physics, "friction": args.friction, "protocols": list(PROTOCOLS),
             "physics_backend": runner.resolve_backend(args.backend, per_call)[0],
             "max_grasps_per_object": args.max_grasps_per_object, "filter_mesh": args.filter_mesh,
+            "masks": args.masks,
             "grasp_config": dataclasses.asdict(cfg)}
     records = []
     jobs = [(o, c) for o in objs for c in conditions(args)]
@@ -247,7 +254,7 @@ def run(args) -> dict:
             else:
                 if (name, views) not in frames:  # one render per view count: clean and noisy see the same scene
                     frames = {(name, views): depth_render.render_views(mesh, views, args.width, args.height)}
-                f = frames[name, views]
+                f = frames[name, views] if args.masks else frames[name, views]._replace(mask=None)
                 if noisy:
                     depth = depth_render.add_noise(f.depth, np.random.default_rng(args.seed))
                     f = f._replace(depth=depth.astype(np.float32))
@@ -256,7 +263,7 @@ def run(args) -> dict:
                 rec.update(surface=grid_error(fused.grid, points), fuse_s=fused.fuse_s,
                            table_err_mm=1000 * (fused.table_z - float(mesh.bounds[0, 2])))
                 rec.update(grasp_job(hand, mesh, name, cfg, args, grid=fused.grid,
-                                     filter_mesh=fused.mesh if args.filter_mesh == "fused" else None))
+                                     filter_mesh=fused.grid if args.filter_mesh == "fused" else None))
         except FfcgsError as e:  # a failed fusion is a result (its object fails top-1), not the end of the run
             rec["error"] = str(e)
         records.append(rec)
@@ -427,7 +434,7 @@ def header_line(conf: dict) -> str:
             f" per object)" if conf["physics"] == "on" else "no physics")
     return (f"depth · {where} · objects: {objs} · {conf['width']} x {conf['height']} frames, fused at "
             f"{conf['res']}^3 · {conf['sampler']} n {conf['n']} seed {conf['seed']} · fused-planned grasps filtered "
-            f"on the {conf.get('filter_mesh', 'true')} mesh · {phys} · `{conf['command']}`")
+            f"on the {conf.get('filter_mesh', 'true')} surface · {phys} · `{conf['command']}`")
 
 
 def table(report: dict) -> str:

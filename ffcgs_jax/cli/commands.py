@@ -317,12 +317,12 @@ def run_grasp(cmd: GraspCmd) -> None:
         fused = depth_object.from_depth(cmd.depth, cmd.grasp.sdf.res, cmd.table_z, bounds_box(cmd.bounds),
                                         margin=cmd.grasp.sdf.margin, min_margin=cmd.grasp.sdf.min_margin)
         grid = fused.grid
-        rows = fuse_rows(fused, cmd.depth) + [("evaluation surface", "the fused surface (filters, epsilon, "
+        rows = fuse_rows(fused, cmd.depth) + [("evaluation surface", "the fused SDF (filters, epsilon, "
                                                "contacts); --object adds the true mesh's figures")]
     name = Path(cmd.object if cmd.object is not None else cmd.depth).stem
     # From depth, the filters and epsilon read the fused surface, as a robot without the mesh would: which grasps
     # are returned must not depend on whether a mesh was also given. The true mesh adds the *_true figures.
-    gs = synthesize(hand, mesh if cmd.depth is None else fused.mesh, cmd.grasp, name, grid=grid, poses=poses)
+    gs = synthesize(hand, mesh if cmd.depth is None else fused.grid, cmd.grasp, name, grid=grid, poses=poses)
     if mesh is not None:
         gs.arrays.update(mesh_io.identity(cmd.object, cmd.grasp.sdf.scale, mesh))
     rows += summary_rows(gs)

@@ -155,6 +155,23 @@ def mesh_contacts(
     return closest.reshape(p.shape), normals.reshape(p.shape), signed.reshape(p.shape[:2])
 
 
+def sdf_contacts(grid, points) -> tuple[Float[np.ndarray, "B C 3"], Float[np.ndarray, "B C 3"], Float[np.ndarray, "B C"]]:
+    """`mesh_contacts` for an object known only by its Gradient-SDF (fused from depth frames): the signed distance
+    and unit gradient the planner itself reads (`sdf.query`), and the closest point p - d n to first order."""
+    import jax.numpy as jnp
+
+    from ffcgs_jax.geometry import sdf as sdf_mod
+
+    p = _array(points, "points", (None, None, 3))
+    flat = p.reshape(-1, 3)
+    if len(flat) == 0:
+        return p.copy(), p.copy(), np.zeros(p.shape[:2])
+    d, n = sdf_mod.query(grid, jnp.asarray(flat, grid.grid.dtype))
+    d, n = np.asarray(d, np.float64), np.asarray(n, np.float64)
+    n = n / np.linalg.norm(n, axis=1, keepdims=True)
+    return (flat - d[:, None] * n).reshape(p.shape), n.reshape(p.shape), d.reshape(p.shape[:2])
+
+
 def _shared_normal(mesh: trimesh.Trimesh, verts: np.ndarray) -> np.ndarray:
     """Normalised sum of the face normals of all faces holding every vertex in `verts` (an edge or a vertex)."""
     faces = set(mesh.vertex_faces[verts[0]].tolist()) - {-1}
@@ -377,16 +394,28 @@ def joint_limit_use(q, q_lower, q_upper) -> Float[np.ndarray, " B"]:
 # ---------------------------------------------------------------------------------------------- evaluation
 
 
-def default_centre_radius(mesh: trimesh.Trimesh) -> tuple[Float[np.ndarray, " 3"], float]:
-    """Torque origin and scale: centre of mass if watertight, else bounding-box centre; max vertex distance."""
+def default_centre_radius(mesh) -> tuple[Float[np.ndarray, " 3"], float]:
+    """Torque origin and scale: centre of mass if watertight, else bounding-box centre; max vertex distance (for a
+    Gradient-SDF: `sdf.object_extent`'s centre and radius)."""
+    if _is_sdf(mesh):
+        from ffcgs_jax.geometry import sdf as sdf_mod
+
+        ext = sdf_mod.object_extent(mesh)
+        return np.asarray(ext.centre, np.float64), float(ext.radius)
     mesh = _mesh(mesh)
     centre = np.asarray(mesh.center_mass if mesh.is_watertight else mesh.bounds.mean(axis=0), np.float64)
     radius = float(np.linalg.norm(np.asarray(mesh.vertices) - centre, axis=1).max())
     return centre, radius
 
 
+def _is_sdf(obj) -> bool:
+    from ffcgs_jax.geometry.sdf import GradientSDF
+
+    return isinstance(obj, GradientSDF)
+
+
 def evaluate(
-    mesh: trimesh.Trimesh,
+    mesh,
     contacts_world,
     q,
     q_lower,
@@ -404,7 +433,8 @@ def evaluate(
     and E_g = NaN).
 
     Args:
-        mesh: the object in the frame of `contacts_world`, metres.
+        mesh: the object in the frame of `contacts_world`, metres: a trimesh, or a `GradientSDF` for an object known
+            only by its SDF (fused from depth frames; `sdf_contacts`: the SDF's own zero level).
         contacts_world: (B, C, 3) fingertip contact points, metres.
         q: (B, Q) channel positions, radians.
         q_lower, q_upper: (Q,) channel limits.
@@ -419,21 +449,22 @@ def evaluate(
         distances, metres, and normals (B, C, 3), the mesh's outward normals at the closest points.
     """
     cfg.check()
-    mesh = _mesh(mesh)
+    on_sdf = _is_sdf(mesh)
+    mesh = mesh if on_sdf else _mesh(mesh)
     pts = _array(contacts_world, "contacts_world", (None, None, 3))
     b = pts.shape[0]
     if pts.shape[1] == 0:
         raise FfcgsError("contacts_world needs >= 1 contact per grasp")
     qq = _array(q, "q", (b, None))
     lo, hi = _limits(q_lower, q_upper, qq.shape[1])
-    c0, r0 = default_centre_radius(mesh)
+    c0, r0 = default_centre_radius(mesh) if centre is None or radius is None else (None, None)
     o = c0 if centre is None else _array(centre, "centre", (3,))
     r = r0 if radius is None else radius
     if not (isinstance(r, (int, float, np.floating)) and math.isfinite(r) and r > 0):
         raise FfcgsError(f"radius must be a finite number > 0, got {r!r}")
     pen = np.full(b, np.nan) if penetration is None else _array(penetration, "penetration", (b,))
 
-    closest, normals, signed = mesh_contacts(mesh, pts)
+    closest, normals, signed = sdf_contacts(mesh, pts) if on_sdf else mesh_contacts(mesh, pts)
     basis = sphere_basis(cfg.basis_size)
     eps = np.zeros(b)
     e_g = np.zeros(b)

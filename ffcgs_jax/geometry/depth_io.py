@@ -37,6 +37,7 @@ ROTATION_TOL = 1e-3  # |R^T R - I| of a pose: looser than float32 round-off of a
 _PNG = b"\x89PNG\r\n\x1a\n"
 _COLOUR = {0: "grayscale", 2: "RGB", 3: "palette", 4: "grayscale+alpha", 6: "RGBA"}
 _MASK = "_mask"
+TABLE_BAND = 0.005  # m: readings this close above the table count as table (noise, the object's contact rim)
 _TABLE_SHARE = 0.05  # a table seen by the cameras holds at least this share of the readings
 _FIT_POINTS, _SCORE_POINTS = 100_000, 20_000  # random readings for the table's refit and hypothesis scores
 
@@ -455,7 +456,7 @@ def fit_table(points: Float[np.ndarray, "P 3"], tol: float = 0.003, max_tilt_deg
     return plane, float(np.median(inl[:, 2]))
 
 
-def remove_table(data: Frames | Float[np.ndarray, "P 3"], table_z: float | None = None, band: float = 0.005,
+def remove_table(data: Frames | Float[np.ndarray, "P 3"], table_z: float | None = None, band: float = TABLE_BAND,
                  tol: float = 0.003, seed: int = 0,
                  points: np.ndarray | None = None) -> tuple[Frames | Float[np.ndarray, "kept 3"], float]:
     """Readings on or under the table removed: those less than `band` above the table plane.

@@ -258,7 +258,8 @@ def to_gradient_sdf_reference(values: Float[np.ndarray, "R R R"], origin: Float[
 # From the fused volume to a GradientSDF (JAX: the path `fuse` takes)
 # ----------------------------------------------------------------------------------------------------------------
 
-_JFA_CLEANUP = (2, 1)  # extra jump-flooding passes after the halving ones (JFA+2: mends most of JFA's rare misses)
+_JFA_CLEANUP = (2, 1)
+UNROLL_JFA = {"gpu": True}  # per backend: unroll the jump-flooding offsets (bench/depth.py --speed compares)  # extra jump-flooding passes after the halving ones (JFA+2: mends most of JFA's rare misses)
 
 
 def _shift(x, offset, fill):
@@ -296,10 +297,11 @@ def _seeds(V):
     return best, jnp.isfinite(best_d)
 
 
-def _jump_flood(seeds):
+def _jump_flood(seeds, unroll: bool = False):
     """Distance (voxels) from every voxel to its nearest seed by jump flooding (Rong and Tan 2006): passes of step
     R/2, R/4, ..., 1, then `_JFA_CLEANUP`, each voxel taking the nearest of its own seed and those held by the 26
-    voxels a step away. Scans over passes and offsets (not unrolled loops) keep the compile under a second."""
+    voxels a step away. Scans over passes and offsets keep the compile under a second; `unroll` unrolls the offsets
+    (faster on a GPU: bench/depth.py --speed)."""
     r = seeds.shape[0]
     pad = r // 2
     ijk = jnp.stack(jnp.meshgrid(*(jnp.arange(r, dtype=seeds.dtype),) * 3, indexing="ij"), -1)
@@ -321,8 +323,13 @@ def _jump_flood(seeds):
             take = d < bd
             return (jnp.where(take[..., None], c, b), jnp.where(take, d, bd)), None
 
-        (best, _), _ = jax.lax.scan(candidate, (best, jnp.sum((best - ijk) ** 2, -1)), offsets)
-        return best, None
+        carry = (best, jnp.sum((best - ijk) ** 2, -1))
+        if unroll:  # one fused kernel per pass on a GPU instead of 26 small ones
+            for o in offsets:
+                carry, _ = candidate(carry, o)
+        else:
+            carry, _ = jax.lax.scan(candidate, carry, offsets)
+        return carry[0], None
 
     best, _ = jax.lax.scan(one_pass, seeds, jnp.asarray(steps + list(_JFA_CLEANUP), jnp.int32))
     return jnp.sqrt(jnp.sum((best - ijk) ** 2, -1))
@@ -342,7 +349,7 @@ def _dilate(mask):
 def _to_grid(V, h):
     """(R, R, R, 4) distance and unit gradient from the resolved field V (module docstring: the conversion)."""
     seeds, band = _seeds(V)
-    dist = h * _jump_flood(seeds)
+    dist = h * _jump_flood(seeds, UNROLL_JFA.get(jax.default_backend(), False))
     slope = jnp.linalg.norm(jnp.stack(jnp.gradient(V, h), -1), axis=-1)
     first = jnp.abs(V) / jnp.where(slope > 0, slope, 1.0)
     clipped = _dilate(jnp.abs(V) >= jnp.abs(V).max() * (1 - 1e-9))
@@ -393,15 +400,43 @@ def to_gradient_sdf(values: Float[Array | np.ndarray, "R R R"], origin: Float[np
                        table_z=jnp.asarray(float(table_z), fdt))
 
 
-def _fuse_device(depth, mask, K, poses, origin, h, trunc, table_z, res):
-    volume = _integrate(depth, mask, K, poses, origin, h, trunc, res)
+def _world_points(depth, K, poses):
+    h, w = depth.shape[1:]
+    v, u = jnp.meshgrid(jnp.arange(h, dtype=depth.dtype), jnp.arange(w, dtype=depth.dtype), indexing="ij")
+    rays = jnp.stack([u, v, jnp.ones_like(u)], -1) @ jnp.linalg.inv(K).T  # (H, W, 3), z = 1
+    cam = rays[None] * depth[..., None]
+    return jnp.einsum("nij,nhwj->nhwi", poses[:, :3, :3], cam) + poses[:, None, None, :3, 3]
+
+
+def _fuse_device(depth, mask, K, poses, table_z, box, margin, min_margin, trunc_voxels, res, cut_table, fit_box):
+    """`fuse` from the frames to the grid in one compiled function: the object's readings (mask, above the table
+    band, in the box), the grid frame around them (as `grid_frame`), the fusion and the conversion."""
+    p = _world_points(depth, K, poses)
+    obj = mask & (depth > 0)
+    if cut_table:
+        obj = obj & (p[..., 2] - table_z >= depth_io.TABLE_BAND)
+    if fit_box:  # the cube around the object's readings
+        lo = jnp.min(jnp.where(obj[..., None], p, jnp.inf), axis=(0, 1, 2))
+        hi = jnp.max(jnp.where(obj[..., None], p, -jnp.inf), axis=(0, 1, 2))
+        if cut_table:
+            lo = lo.at[2].min(table_z)  # the object's hidden underside reaches the table
+    else:
+        obj = obj & jnp.all((p >= box[0]) & (p <= box[1]), -1)
+        lo, hi, margin, min_margin = box[0], box[1], 0.0, 0.0
+    size = jnp.max(hi - lo)
+    side = size + 2.0 * jnp.maximum(margin * size, min_margin)
+    h = side / (res - 1)
+    origin = (lo + hi) / 2.0 - side / 2.0
+    trunc = trunc_voxels * h
+    volume = _integrate(depth, obj, K, poses, origin, h, trunc, res)
     V = jnp.where(volume.weight > 0, volume.tsdf, jnp.where(volume.shadow, -trunc, trunc))
-    z = origin[2] + h * jnp.arange(res, dtype=V.dtype)
-    V = jnp.maximum(V, table_z - z[None, None, :])
-    return _to_grid(V, h), (V < 0).any(), (V < 0).all()
+    if cut_table:
+        z = origin[2] + h * jnp.arange(res, dtype=V.dtype)
+        V = jnp.maximum(V, table_z - z[None, None, :])
+    return _to_grid(V, h), origin, h, jnp.sum(obj), (V < 0).any(), (V < 0).all()
 
 
-_fuse_jit = jax.jit(_fuse_device, static_argnames="res")
+_fuse_jit = jax.jit(_fuse_device, static_argnames=("res", "cut_table", "fit_box"))
 
 
 def fuse(frames: depth_io.Frames, res: int = 64, trunc_voxels: float = 4.0,
@@ -437,6 +472,8 @@ def fuse(frames: depth_io.Frames, res: int = 64, trunc_voxels: float = 4.0,
     check_range("trunc_voxels", trunc_voxels, 1, 16)
     check_range("margin", margin, 0.0, 2.0)
     check_range("min_margin", min_margin, 0.0, 1.0)
+    if jax.default_backend() != "cpu" if on_device is None else on_device:
+        return _fuse_on_device(frames, res, trunc_voxels, bounds, table_z, margin, min_margin)
     p = depth_io.world_points(frames) if points is None else points
     if table_z is not None:
         frames, table_z = depth_io.remove_table(frames, table_z, points=p)  # idempotent after the caller's own
@@ -447,23 +484,33 @@ def fuse(frames: depth_io.Frames, res: int = 64, trunc_voxels: float = 4.0,
     else:
         p = p[depth_io.object_mask(frames) & (frames.depth > 0)]
         if not len(p):
-            raise FfcgsError("no depth reading on the object in any frame (all readings are zero, outside the masks "
-                             "or under the table)")
+            raise FfcgsError(_NO_READING)
         lo, hi = p.min(0), p.max(0)
         if table_z is not None:
             lo[2] = min(lo[2], table_z)  # the object's hidden underside reaches the table
         origin, h = grid_frame(np.stack([lo, hi]), res, margin, min_margin)
     trunc = trunc_voxels * h
-    if not (jax.default_backend() != "cpu" if on_device is None else on_device):
-        volume = integrate(frames.depth, frames.K, frames.poses, origin, h, res, trunc,
-                           mask=depth_io.object_mask(frames))
-        values = resolve(volume, trunc, origin, h, table_z)
-        return to_gradient_sdf_reference(values, origin, h, origin[2] if table_z is None else table_z)
-    tz = -np.inf if table_z is None else float(table_z)  # no table: nothing to cut off below it
+    volume = integrate(frames.depth, frames.K, frames.poses, origin, h, res, trunc, mask=depth_io.object_mask(frames))
+    values = resolve(volume, trunc, origin, h, table_z)
+    return to_gradient_sdf_reference(values, origin, h, origin[2] if table_z is None else table_z)
+
+
+_NO_READING = ("no depth reading on the object in any frame (all readings are zero, outside the masks or under the "
+               "table)")
+
+
+def _fuse_on_device(frames, res, trunc_voxels, bounds, table_z, margin, min_margin) -> GradientSDF:
     fdt = jnp.result_type(float)
-    args = (frames.depth, depth_io.object_mask(frames), frames.K, frames.poses, origin, h, trunc, tz)
-    grid, any_inside, all_inside = _fuse_jit(*(jnp.asarray(a, bool if i == 1 else fdt) for i, a in enumerate(args)),
-                                             res=int(res))
+    box = np.zeros((2, 3)) if bounds is None else depth_io.check_bounds(bounds)
+    if table_z is not None and not np.isfinite(table_z):
+        raise FfcgsError(f"table_z must be finite, got {table_z}")
+    f = lambda x: jnp.asarray(x, fdt)  # noqa: E731
+    grid, origin, h, n_obj, any_inside, all_inside = _fuse_jit(
+        f(frames.depth), jnp.asarray(depth_io.object_mask(frames)), f(frames.K), f(frames.poses),
+        f(0.0 if table_z is None else table_z), f(box), f(margin), f(min_margin), f(trunc_voxels), res=int(res),
+        cut_table=table_z is not None, fit_box=bounds is None)
+    if int(n_obj) == 0:
+        raise FfcgsError(_NO_READING)
     _check_sides(bool(any_inside), bool(all_inside))
-    return GradientSDF(grid=grid, origin=jnp.asarray(origin, fdt), voxel_size=jnp.asarray(h, fdt),
-                       table_z=jnp.asarray(origin[2] if table_z is None else table_z, fdt))
+    return GradientSDF(grid=grid, origin=origin, voxel_size=h,
+                       table_z=origin[2] if table_z is None else jnp.asarray(table_z, fdt))

@@ -139,15 +139,19 @@ class GraspSet:
         return np.lexsort((np.arange(n), self["E"], ~self["valid"]))
 
 
-def synthesize(hand: Hand, mesh: trimesh.Trimesh, cfg: GraspConfig = GraspConfig(), object_name: str = "object",
-               grid: sdf_mod.GradientSDF | None = None, poses: np.ndarray | None = None,
+def synthesize(hand: Hand, mesh: trimesh.Trimesh | sdf_mod.GradientSDF, cfg: GraspConfig = GraspConfig(),
+               object_name: str = "object", grid: sdf_mod.GradientSDF | None = None, poses: np.ndarray | None = None,
                q: np.ndarray | None = None) -> GraspSet:
     """Sample `cfg.n` wrist poses on the object (or take `poses`, (B, 4, 4), object frame), optimise the fingers,
     filter and evaluate the grasps. `q` (B, Q), only with `poses`, starts the descent there instead of at the open
-    hand (the annotation planner does not: see `dataset.planner.plan` for why)."""
+    hand (the annotation planner does not: see `dataset.planner.plan` for why).
+
+    `mesh` is what the filters and epsilon read (`metrics.evaluate`): the object's mesh, or for an object known only
+    by its SDF (fused from depth frames) that `GradientSDF`, which is then also the grid planned on. `grid`: plan on
+    this SDF instead of building one from the mesh."""
     check_all(cfg)  # nested configs too: an unknown optim.method must not silently fall back
     if grid is None:
-        grid = sdf_mod.build_sdf(mesh, cfg.sdf)
+        grid = mesh if isinstance(mesh, sdf_mod.GradientSDF) else sdf_mod.build_sdf(mesh, cfg.sdf)
     target = make_target(grid)
     key = jax.random.PRNGKey(cfg.seed)
     given = None

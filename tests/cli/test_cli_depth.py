@@ -69,7 +69,7 @@ def test_grasp_from_depth_evaluates_on_the_fused_surface(capsys, frames_dir):
     out = frames_dir / "alone.npz"
     code, text, err = run(capsys, "grasp", "--depth", frames_dir / "frames", *SMALL, "--out", out)
     assert code == 0, err
-    assert "the fused surface (filters, epsilon, contacts)" in text and "on the true mesh" not in text
+    assert "the fused SDF (filters, epsilon, contacts)" in text and "on the true mesh" not in text
     data = grasp_io.load_npz(out)
     assert str(data["evaluation_surface"]) == "fused" and "object_source" not in data
     assert str(data["depth_source"]) == str((frames_dir / "frames").resolve())
