@@ -311,7 +311,7 @@ def run_grasp(cmd: GraspCmd) -> None:
     poses = None if cmd.poses is None else _read_poses(cmd.poses)
     grid, rows = None, []
     if cmd.depth is not None:
-        from ffcgs_jax.cli.depth_commands import bounds_box, fuse_rows
+        from ffcgs_jax.cli.depth_commands import bounds_box, fuse_rows, true_mesh_rows
         from ffcgs_jax.geometry import depth_object
 
         fused = depth_object.from_depth(cmd.depth, cmd.grasp.sdf.res, cmd.table_z, bounds_box(cmd.bounds),
@@ -348,16 +348,6 @@ def run_grasp(cmd: GraspCmd) -> None:
         image, _ = grasp_plot.grasps_image(hand, mesh if mesh is not None else fused.mesh, gs)
         render.save_png(image, cmd.png)
         print(f"wrote {cmd.png}")
-
-
-def true_mesh_rows(gs) -> list[tuple[str, str]]:
-    v, n = gs["valid"], int(gs["valid"].sum())
-    tips = gs["contacts"].shape[1]
-    return [("on the true mesh: force closure (valid)", f"{int(gs['force_closure_true'][v].sum())} / {n}"),
-            ("on the true mesh: all tips touching (valid)", f"{int((gs['n_contacts_true'][v] == tips).sum())} / {n}"
-                                                            f"  (within {1000 * gs.config.contact_tol:g} mm)"),
-            ("on the true mesh: median |tip distance| (mm)",
-             f"{np.median(np.abs(gs['contact_dist_true'][v])) * 1000:.2f}" if n else "-")]
 
 
 def _validate(gs, spec, mesh, cmd: GraspCmd):

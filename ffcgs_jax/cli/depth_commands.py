@@ -132,6 +132,17 @@ def fuse_rows(fo, source: str) -> list[tuple[str, str]]:
                               + " x ".join(f"{e * 100:.1f}" for e in fo.mesh.extents))]
 
 
+def true_mesh_rows(gs) -> list[tuple[str, str]]:
+    """The lines `grasp --depth --object` adds: the returned grasps measured on the true mesh."""
+    v, n = gs["valid"], int(gs["valid"].sum())
+    tips = gs["contacts"].shape[1]
+    return [("on the true mesh: force closure (valid)", f"{int(gs['force_closure_true'][v].sum())} / {n}"),
+            ("on the true mesh: all tips touching (valid)", f"{int((gs['n_contacts_true'][v] == tips).sum())} / {n}"
+                                                            f"  (within {1000 * gs.config.contact_tol:g} mm)"),
+            ("on the true mesh: median |tip distance| (mm)",
+             f"{np.median(np.abs(gs['contact_dist_true'][v])) * 1000:.2f}" if n else "-")]
+
+
 def run_fuse(cmd: FuseCmd) -> None:
     from ffcgs_jax import files
     from ffcgs_jax.geometry import depth_object, sdf
