@@ -421,7 +421,7 @@ def _fuse_device(depth, mask, K, poses, table_z, box, margin, min_margin, trunc_
         if cut_table:
             lo = lo.at[2].min(table_z)  # the object's hidden underside reaches the table
     else:
-        obj = obj & jnp.all((p >= box[0]) & (p <= box[1]), -1)
+        obj = obj & jnp.all((p >= box[0][None, None, None]) & (p <= box[1][None, None, None]), -1)
         lo, hi, margin, min_margin = box[0], box[1], 0.0, 0.0
     size = jnp.max(hi - lo)
     side = size + 2.0 * jnp.maximum(margin * size, min_margin)

@@ -237,12 +237,14 @@ def test_jump_flooding_finds_the_nearest_seed():
     assert np.percentile(err, 99.9) < 1e-6 and err.max() < 0.5
 
 
-@pytest.mark.parametrize("res", [RES, 17])  # an odd size: the jump steps do not halve evenly
-def test_device_conversion_matches_the_kdtree_reference(views, res):
-    """`fuse`'s compiled conversion (jump flooding) against the host's (exact nearest crossing by a KD-tree)."""
+@pytest.mark.parametrize("res, box", [(RES, False), (17, False), (RES, True)])  # 17: the jump steps do not halve
+def test_device_conversion_matches_the_kdtree_reference(views, res, box):
+    """`fuse` compiled from the frames (grid frame, table band, box, fusion, conversion by jump flooding) against
+    the host's steps (NumPy, the exact nearest crossing by a KD-tree)."""
     frames, table_z = views
-    dev = tsdf.fuse(frames, res=res, table_z=table_z, on_device=True)
-    ref = tsdf.fuse(frames, res=res, table_z=table_z, on_device=False)
+    bounds = np.array([CENTRE - 1.6 * R, CENTRE + 1.6 * R]) if box else None
+    dev = tsdf.fuse(frames, res=res, table_z=table_z, bounds=bounds, on_device=True)
+    ref = tsdf.fuse(frames, res=res, table_z=table_z, bounds=bounds, on_device=False)
     h = float(ref.voxel_size)
     for k in ("origin", "voxel_size", "table_z"):
         np.testing.assert_allclose(np.asarray(getattr(dev, k)), np.asarray(getattr(ref, k)), atol=1e-12)
