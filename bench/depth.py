@@ -545,7 +545,8 @@ def main(argv: list[str] | None = None) -> int:
     if "total_s" in conf:
         print(f"{len(report['records'])} {'steps' if conf['mode'] == 'speed' else 'jobs'} in {conf['total_s']:.0f} s")
     if args.results:
-        write_results(Path(args.results), "depth-speed" if conf["mode"] == "speed" else "depth",
+        name = f"depth-speed-{conf['machine']['backend']}" if conf["mode"] == "speed" else "depth"  # one per kind
+        write_results(Path(args.results), name,
                       head + "\n\n" + main_table)
     return 0
 

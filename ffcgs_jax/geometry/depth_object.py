@@ -61,15 +61,22 @@ def from_depth(source: str | pathlib.Path | depth_io.Frames, res: int = 32, tabl
         depth_io.check_frames(source)
     fitted = table_z is None
     t0 = time.perf_counter()
-    points = depth_io.world_points(frames)
-    if bounds is not None:
-        bounds = depth_io.check_bounds(bounds)
-        frames = depth_io.crop(frames, bounds, points)  # before the fit, so clutter outside the workspace cannot win
-    frames, table_z = depth_io.remove_table(frames, table_z, points=points)
-    if not (depth_io.object_mask(frames) & (frames.depth > 0)).any():
+    if fitted:  # the fit needs the readings' world points on the host; with a given height the device finds them
+        points = depth_io.world_points(frames)
+        if bounds is not None:
+            bounds = depth_io.check_bounds(bounds)
+            frames = depth_io.crop(frames, bounds, points)  # before the fit: clutter outside the box cannot win it
+        frames, table_z = depth_io.remove_table(frames, None, points=points)
+    elif not np.isfinite(table_z):
+        raise FfcgsError(f"table_z must be finite, got {table_z}")
+    try:
+        grid = tsdf.fuse(frames, res, trunc_voxels, bounds, table_z, margin, min_margin)
+    except FfcgsError as e:
+        if "no depth reading on the object" not in str(e):
+            raise
         raise FfcgsError(f"no depth reading left on the object after removing the table at z = {table_z:.4f} m "
-                         f"({'fitted' if fitted else 'given'}){' and the bounds' if bounds is not None else ''}")
-    grid = tsdf.fuse(frames, res, trunc_voxels, bounds, table_z, margin, min_margin, points=points)
+                         f"({'fitted' if fitted else 'given'}){' and the bounds' if bounds is not None else ''}") \
+            from None
     values = np.asarray(grid.grid[..., 0], np.float64)
     mesh = surface_nets.zero_level_mesh(values, np.asarray(grid.origin, np.float64), float(grid.voxel_size))
     return FusedObject(grid, mesh, float(table_z), fitted, frames, time.perf_counter() - t0)
