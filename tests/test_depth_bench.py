@@ -102,7 +102,7 @@ def test_speed_on_tiny_frames(tmp_path):
     assert "tsdf.integrate" in steps and any(s.startswith("open3d") for s in steps)
     fuse = next(r for r in report["records"] if r["step"].startswith("tsdf.fuse"))
     assert fuse["median_ms"] > 0 and fuse["surface"]["median_vox"] < 2
-    assert "<!-- depth-speed:begin -->" in md and "| tsdf.integrate |" in out
+    assert "<!-- depth-speed-cpu:begin -->" in md and "| tsdf.integrate |" in out
 
 
 @pytest.mark.slow  # compiles the synthesis (a minute on a 2-core CPU)

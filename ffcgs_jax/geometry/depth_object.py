@@ -7,10 +7,12 @@ mesh is given, pictures). The object frame is the cameras' world frame: the grid
 and the table is at its fused height.
 """
 
+import dataclasses
+import functools
 import pathlib
 import time
-from typing import NamedTuple
 
+import jax
 import numpy as np
 import trimesh
 
@@ -18,26 +20,36 @@ from ffcgs_jax.errors import FfcgsError
 from ffcgs_jax.geometry import depth_io, surface_nets, tsdf
 from ffcgs_jax.geometry.sdf import GradientSDF
 
+_FIT_SAMPLE = 100_000  # readings the table fit sees (as `depth_io.fit_table` draws at most)
+_LEVEL_DEG = 0.3  # a fitted table tilted less than this is cut as level (1 mm over 20 cm): fuse cuts it on the device
 
-class FusedObject(NamedTuple):
+
+@dataclasses.dataclass(frozen=True)
+class FusedObject:
     """An object fused from depth frames.
 
     Attributes:
         grid: the Gradient-SDF (object frame = the cameras' world frame).
-        mesh: the grid's zero level as a triangle mesh, metres (closed above the table: the underside the cameras
-            cannot see lies on the table plane).
         table_z: the table height in metres (given, or fitted to the readings).
         table_fitted: True when the table height came from the RANSAC fit.
-        frames: the frames as fused (masks narrowed by the table and the bounds).
-        fuse_s: seconds from the frames in memory to the grid and its mesh (table fit included, not the reading).
+        frames: the frames fused (checked; the table band and the bounds are cut inside the fusion, or in the
+            masks for a tilted table).
+        fuse_s: seconds from the frames in memory to the grid (table fit included, not the reading).
     """
 
     grid: GradientSDF
-    mesh: trimesh.Trimesh
     table_z: float
     table_fitted: bool
     frames: depth_io.Frames
     fuse_s: float
+
+    @functools.cached_property
+    def mesh(self) -> trimesh.Trimesh:
+        """The grid's zero level as a triangle mesh, metres (closed above the table: the underside the cameras
+        cannot see lies on the table plane), made on first use: for pictures and `ffcgs fuse --mesh`; the
+        evaluation reads the SDF itself."""
+        return surface_nets.zero_level_mesh(np.asarray(self.grid.grid[..., 0], np.float64),
+                                            np.asarray(self.grid.origin, np.float64), float(self.grid.voxel_size))
 
 
 def from_depth(source: str | pathlib.Path | depth_io.Frames, res: int = 32, table_z: float | None = None,
@@ -61,12 +73,13 @@ def from_depth(source: str | pathlib.Path | depth_io.Frames, res: int = 32, tabl
         depth_io.check_frames(source)
     fitted = table_z is None
     t0 = time.perf_counter()
-    if fitted:  # the fit needs the readings' world points on the host; with a given height the device finds them
-        points = depth_io.world_points(frames)
-        if bounds is not None:
-            bounds = depth_io.check_bounds(bounds)
-            frames = depth_io.crop(frames, bounds, points)  # before the fit: clutter outside the box cannot win it
-        frames, table_z = depth_io.remove_table(frames, None, points=points)
+    bounds = None if bounds is None else depth_io.check_bounds(bounds)
+    if fitted:  # on a sample of the readings, in the box (clutter outside it cannot win the fit)
+        plane, table_z = depth_io.fit_table(depth_io.sample_points(frames, _FIT_SAMPLE, bounds=bounds))
+        if plane[2] < np.cos(np.radians(_LEVEL_DEG)):  # tilted: the device's level band would not follow it
+            points = depth_io.world_points(frames)
+            frames, table_z = depth_io.remove_table(depth_io.crop(frames, bounds, points) if bounds is not None
+                                                    else frames, None, points=points)
     elif not np.isfinite(table_z):
         raise FfcgsError(f"table_z must be finite, got {table_z}")
     try:
@@ -77,6 +90,5 @@ def from_depth(source: str | pathlib.Path | depth_io.Frames, res: int = 32, tabl
         raise FfcgsError(f"no depth reading left on the object after removing the table at z = {table_z:.4f} m "
                          f"({'fitted' if fitted else 'given'}){' and the bounds' if bounds is not None else ''}") \
             from None
-    values = np.asarray(grid.grid[..., 0], np.float64)
-    mesh = surface_nets.zero_level_mesh(values, np.asarray(grid.origin, np.float64), float(grid.voxel_size))
-    return FusedObject(grid, mesh, float(table_z), fitted, frames, time.perf_counter() - t0)
+    jax.block_until_ready(grid.grid)
+    return FusedObject(grid, float(table_z), fitted, frames, time.perf_counter() - t0)
