@@ -380,9 +380,10 @@ def world_points(frames: Frames) -> Float[np.ndarray, "N H W 3"]:
 
 def sample_points(frames: Frames, count: int, seed: int = 0,
                   bounds: Float[np.ndarray, "2 3"] | None = None) -> Float[np.ndarray, "P 3"]:
-    """World points of `count` readings in the mask drawn at random (with replacement), those outside `bounds`
-    dropped: what a table fit needs, without the world points of every pixel (150 ms for five 640 x 480 frames)."""
-    valid = np.flatnonzero(object_mask(frames) & (frames.depth > 0))
+    """World points of `count` readings drawn at random (with replacement; the masks do not matter: the table is
+    background), those outside the x-y extent of `bounds` dropped (any height: the table under the box stays):
+    what a table fit needs, without the world points of every pixel (150 ms for five 640 x 480 frames)."""
+    valid = np.flatnonzero(frames.depth > 0)
     if not len(valid):
         return np.zeros((0, 3))
     pick = valid[np.random.default_rng(seed).integers(0, len(valid), count)] if len(valid) > count else valid
@@ -391,7 +392,7 @@ def sample_points(frames: Frames, count: int, seed: int = 0,
     cam = cam * frames.depth[n, r, c].astype(np.float64)[:, None]
     world = transform(frames.poses[n, :3, :3], cam) + frames.poses[n, :3, 3]
     if bounds is not None:
-        world = world[((world >= bounds[0]) & (world <= bounds[1])).all(1)]
+        world = world[((world[:, :2] >= bounds[0, :2]) & (world[:, :2] <= bounds[1, :2])).all(1)]
     return world
 
 

@@ -74,7 +74,7 @@ def from_depth(source: str | pathlib.Path | depth_io.Frames, res: int = 32, tabl
     fitted = table_z is None
     t0 = time.perf_counter()
     bounds = None if bounds is None else depth_io.check_bounds(bounds)
-    if fitted:  # on a sample of the readings, in the box (clutter outside it cannot win the fit)
+    if fitted:  # on a sample of the readings over the box (clutter beside it cannot win the fit)
         plane, table_z = depth_io.fit_table(depth_io.sample_points(frames, _FIT_SAMPLE, bounds=bounds))
         if plane[2] < np.cos(np.radians(_LEVEL_DEG)):  # tilted: the device's level band would not follow it
             points = depth_io.world_points(frames)
