@@ -365,7 +365,7 @@ def speed(args) -> dict:
                "surface": grid_error(fused[where][0], points)}
               for where, label in (("device", "compiled with the fusion (jump flooding)"),
                                    ("host", "on the host (KD-tree)"))),
-            {"step": "depth_object.from_depth (table fit, fuse, surface-nets mesh)", **t_fd,
+            {"step": "depth_object.from_depth (checks, table fit on a sample, fuse)", **t_fd,
              "surface": grid_error(fo.grid, points), "surface_mesh": mesh_error(fo.mesh, points, h)}]
     ref = getattr(tsdf, "to_gradient_sdf_reference", None)
     if ref is not None:  # the host (KD-tree) conversion, where the module still has it
