@@ -76,7 +76,7 @@ CASES = [
     (["dataset"], "needs a subcommand"),
     (["dataset", "merge"], "needs a subcommand"),
     # grasp
-    (["grasp"], "required options"),
+    (["grasp"], "needs an object .* or --depth FRAMES"),
     (["grasp", "nosuchobject"], "mesh file not found: nosuchobject"),
     (["grasp", "mug", "--n", "0"], "n must be >= 1"),
     (["grasp", "mug", "--n", "abc"], "Error parsing --n"),
