@@ -75,8 +75,8 @@ def test_results_block_is_replaced_not_duplicated(depth, tmp_path):
 
 @pytest.mark.parametrize("argv, message", [
     (["--objects", "builtin,nope"], "--objects: unknown group(s) nope"),
-    (["--views", "1,x"], "--views: expected a comma list of integers >= 1"),
-    (["--noise", "loud"], "--noise: expected a comma list of off, on"),
+    (["--objects", "builtin", "--views", "1,x"], "--views: expected a comma list of integers >= 1"),
+    (["--objects", "builtin", "--noise", "loud"], "--noise: expected a comma list of off, on"),
     (["--speed", "--object", "no_such_thing"], "--object: neither a built-in"),
     (["--res", "8"], "argument --res: must be >= 16"),
 ])

@@ -270,6 +270,9 @@ class GraspCmd:
 
     def check(self) -> None:
         _protocols(self.protocol)
+
+    def check_inputs(self) -> None:
+        """What the command line must combine (a config file may hold any part of it, so not in `check`)."""
         if self.object is None and self.depth is None:
             raise FfcgsError("ffcgs grasp needs an object (a built-in name or a mesh file) or --depth FRAMES")
         if self.depth is None and (self.table_z is not None or self.bounds is not None):
@@ -305,6 +308,7 @@ def run_grasp(cmd: GraspCmd) -> None:
     from ffcgs_jax.synthesis import grasp_io
     from ffcgs_jax.synthesis.grasp import check_on_mesh, summary_rows, synthesize
 
+    cmd.check_inputs()
     _outputs(("--out", cmd.out), ("--mcap", cmd.mcap), ("--png", cmd.png))
     hand = K.load_hand(cmd.hand)
     mesh = None if cmd.object is None else mesh_io.load_mesh(cmd.object, scale=cmd.grasp.sdf.scale)
@@ -328,8 +332,8 @@ def run_grasp(cmd: GraspCmd) -> None:
     rows += summary_rows(gs)
     if cmd.depth is not None:
         gs.arrays.update(depth_source=np.array(str(Path(cmd.depth).expanduser().resolve())),
-                         evaluation_surface=np.array("fused"), table_z=np.float64(fused.table_z),
-                         fuse_s=np.float64(fused.fuse_s))
+                         evaluation_surface=np.array("fused"), table_z=np.asarray(fused.table_z, np.float64),
+                         fuse_s=np.asarray(fused.fuse_s, np.float64))
         if mesh is not None:
             gs.arrays.update(check_on_mesh(hand, mesh, gs, grid))
             rows += true_mesh_rows(gs)

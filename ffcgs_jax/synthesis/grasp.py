@@ -150,8 +150,10 @@ def synthesize(hand: Hand, mesh: trimesh.Trimesh | sdf_mod.GradientSDF, cfg: Gra
     by its SDF (fused from depth frames) that `GradientSDF`, which is then also the grid planned on. `grid`: plan on
     this SDF instead of building one from the mesh."""
     check_all(cfg)  # nested configs too: an unknown optim.method must not silently fall back
+    start = time.perf_counter()
     if grid is None:
         grid = mesh if isinstance(mesh, sdf_mod.GradientSDF) else sdf_mod.build_sdf(mesh, cfg.sdf)
+    sdf_s = time.perf_counter() - start
     target = make_target(grid)
     key = jax.random.PRNGKey(cfg.seed)
     given = None
@@ -170,7 +172,10 @@ def synthesize(hand: Hand, mesh: trimesh.Trimesh | sdf_mod.GradientSDF, cfg: Gra
     t0 = time.perf_counter()
     out = jax.block_until_ready(run(key))
     synthesis_s = time.perf_counter() - t0
-    return _finish(hand, mesh, target, cfg, out, synthesis_s, compile_s, object_name)
+    gs = _finish(hand, mesh, target, cfg, out, synthesis_s, compile_s, object_name)
+    gs.arrays["sdf_s"] = np.asarray(sdf_s, np.float64)
+    gs.arrays["total_s"] = np.asarray(time.perf_counter() - start - compile_s, np.float64)
+    return gs
 
 
 def compile_device(hand: Hand, target: Target, cfg: GraspConfig, given: jax.Array | None = None,
@@ -196,6 +201,7 @@ def compile_device(hand: Hand, target: Target, cfg: GraspConfig, given: jax.Arra
 
 
 def _finish(hand, mesh, target, cfg, out: DeviceOut, synthesis_s, compile_s, object_name) -> GraspSet:
+    t0 = time.perf_counter()
     opt = out.opt
     q = np.asarray(opt.q, np.float64)
     contacts = np.asarray(opt.final.contacts, np.float64)
@@ -245,6 +251,7 @@ def _finish(hand, mesh, target, cfg, out: DeviceOut, synthesis_s, compile_s, obj
         "compile_s": np.asarray(compile_s, np.float64),
     }
     arrays["score"] = score.score(arrays)
+    arrays["evaluation_s"] = np.asarray(time.perf_counter() - t0, np.float64)  # the device-to-host copy included
     trace = {k: np.asarray(getattr(opt.trace, k), np.float64) for k in ("E", "E_g", "E_c")}
     return GraspSet(arrays, trace, cfg, object_name)
 
@@ -282,5 +289,8 @@ def summary_rows(gs: GraspSet) -> list[tuple[str, str]]:
         ("median epsilon", med("epsilon")),
         ("median penetration (mm)", med("penetration", 1000)),
         ("synthesis time (s)", f"{float(gs['synthesis_s']):.3f}"),
+        *([("whole call (s)", f"{float(gs['total_s']):.3f} (SDF {float(gs['sdf_s']):.3f}, device "
+                              f"{float(gs['synthesis_s']):.3f}, evaluation {float(gs['evaluation_s']):.3f})")]
+          if "total_s" in gs.arrays else []),
         ("compile time (s)", f"{float(gs['compile_s']):.2f}"),
     ]

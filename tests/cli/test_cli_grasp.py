@@ -53,6 +53,10 @@ def test_grasp_npz(outputs):
     assert str(a["object_name"]) == "box"
     line = next(l for l in outputs[1].splitlines() if l.startswith("grasps (valid / sampled)"))
     assert line.split()[-3] == str(int(a["valid"].sum()))
+    # the whole call's parts: an SDF was built, and the total holds the device and the evaluation
+    assert float(a["sdf_s"]) > 0 and float(a["evaluation_s"]) > 0
+    assert float(a["total_s"]) >= float(a["sdf_s"]) + float(a["synthesis_s"]) + float(a["evaluation_s"])
+    assert re.search(r"whole call \(s\)\s+\d+\.\d+ \(SDF \d", outputs[1])
 
 
 def test_grasp_mcap(outputs):
