@@ -15,6 +15,7 @@ import numpy as np
 import tyro
 
 from ffcgs_jax import files
+from ffcgs_jax.cli.dataset_commands import DatasetInfoCmd, run_dataset_build, run_dataset_info
 from ffcgs_jax.cli.depth_commands import FuseCmd, RenderDepthCmd, run_fuse, run_render_depth
 from ffcgs_jax.dataset.config import DatasetConfig
 from ffcgs_jax.errors import FfcgsError
@@ -133,7 +134,7 @@ def run_bench(cmd: BenchCmd) -> None:
 
     from ffcgs_jax.cli import benchmark
 
-    _outputs(("--results", cmd.results), ("--json", cmd.json))
+    files.check_outputs(("--results", cmd.results or None), ("--json", cmd.json))  # "": print only
     if cmd.backend == "cpu":  # before JAX starts a backend
         jax.config.update("jax_platforms", "cpu")
     elif cmd.backend == "gpu" and jax.default_backend() != "gpu":
@@ -161,7 +162,7 @@ def run_objects(cmd: ObjectsCmd) -> None:
 def run_sdf(cmd: SdfCmd) -> None:
     from ffcgs_jax.geometry import mesh_io, sdf
 
-    _outputs(("--out", cmd.out), ("--png", cmd.png))
+    files.check_outputs(("--out", cmd.out), ("--png", cmd.png))
     mesh = mesh_io.load_mesh(cmd.object, scale=cmd.sdf.scale)
     t0 = time.perf_counter()
     grid = sdf.build_sdf(mesh, cmd.sdf)
@@ -184,7 +185,7 @@ def run_hand(cmd: HandCmd) -> None:
 
     if not 0 <= cmd.close <= 1:
         raise FfcgsError(f"--close must be in [0, 1], got {cmd.close}")
-    _outputs(("--png", cmd.png))
+    files.check_outputs(("--png", cmd.png))
     unknown = [v for v in cmd.views if v not in render.VIEWS]
     if unknown or not cmd.views:
         raise FfcgsError(f"--views: unknown view(s) {unknown}; valid: {', '.join(render.VIEWS)}")
@@ -289,13 +290,6 @@ def _protocols(name: str) -> tuple[str, ...]:
     return (name,)
 
 
-def _outputs(*named: tuple[str, str | None]) -> None:
-    """Check every output path of a command (its folder created) before any work, by `files.check_output`."""
-    for flag, path in named:
-        if path is not None:
-            files.check_output(path, flag)
-
-
 def _print_rows(rows: list[tuple[str, str]]) -> None:
     width = max(len(k) for k, _ in rows)
     for k, v in rows:
@@ -309,7 +303,7 @@ def run_grasp(cmd: GraspCmd) -> None:
     from ffcgs_jax.synthesis.grasp import check_on_mesh, summary_rows, synthesize
 
     cmd.check_inputs()
-    _outputs(("--out", cmd.out), ("--mcap", cmd.mcap), ("--png", cmd.png))
+    files.check_outputs(("--out", cmd.out), ("--mcap", cmd.mcap), ("--png", cmd.png))
     hand = K.load_hand(cmd.hand)
     mesh = None if cmd.object is None else mesh_io.load_mesh(cmd.object, scale=cmd.grasp.sdf.scale)
     poses = None if cmd.poses is None else _read_poses(cmd.poses)
@@ -451,7 +445,7 @@ def run_eval(cmd: EvalCmd) -> None:
     if missing:
         raise FfcgsError(f"{cmd.grasps} has no {' or '.join(missing)} array: is it a grasps.npz from ffcgs grasp?")
     out = cmd.out or cmd.grasps
-    _outputs(("--out", out), ("--video", cmd.video))
+    files.check_outputs(("--out", out), ("--video", cmd.video))
     name, scale = _eval_object(cmd, data, objects.names())
     spec = hand_spec.load_spec(cmd.hand)
     mesh = mesh_io.load_mesh(name, scale=scale)
@@ -527,64 +521,6 @@ def _read_poses(path: str) -> np.ndarray:
     from ffcgs_jax.hand.kinematics import check_wrist_poses
 
     return check_wrist_poses(data, f"wrist poses in {p}").reshape(-1, 4, 4)
-
-
-@dataclasses.dataclass(frozen=True)
-class DatasetInfoCmd:
-    """Print the counts and quality statistics of a dataset file; optionally draw its grasps.
-
-    Attributes:
-        dataset: the .mcap file `ffcgs dataset build` wrote.
-        png: also draw a gallery per object into this directory (<object>.png: its first record's best grasps).
-        objects: the mesh directory the dataset was built from (the file stores SDFs, not meshes); procedural
-            shapes are regenerated without it.
-        per_object: grasps drawn per object.
-        json: also write the statistics to this JSON file.
-    """
-
-    dataset: tyro.conf.Positional[str] = tyro.MISSING
-    png: str | None = None
-    objects: str | None = None
-    per_object: int = 4
-    json: str | None = None
-
-    def check(self) -> None:
-        if not 1 <= self.per_object <= 64:
-            raise FfcgsError(f"--per-object must be in [1, 64], got {self.per_object}")
-
-
-def run_dataset_build(cfg: DatasetConfig) -> None:
-    from ffcgs_jax.dataset import build as dataset_build
-
-    _outputs(("--out", cfg.out))
-    r = dataset_build.build(cfg)
-    done = f"{r['built']} objects built, {r['skipped']} already done, {r['seconds']:.0f} s (timing in {r['timing']})"
-    if r.get("partial"):
-        print(f"wrote {r['out']} with the annotated objects only: {done}; {r['missing']} records missing")
-    elif r["out"] is None:
-        print(f"shard {cfg.shard} finished: {done}; {r['missing']} records of other shards missing, so {cfg.out} "
-              f"is not written yet (rerun without --shard once they are done)")
-    else:
-        print(f"wrote {r['out']}: {done}")
-
-
-def run_dataset_info(cmd: DatasetInfoCmd) -> None:
-    from ffcgs_jax.dataset import stats as dataset_stats
-
-    _outputs(("--json", cmd.json))
-    if cmd.png:
-        files.check_folder(cmd.png, "--png")
-    stats = dataset_stats.stats(cmd.dataset)
-    print(dataset_stats.format_stats(stats))
-    if cmd.json:
-        files.write_text(cmd.json, json.dumps(stats, indent=1))
-        print(f"wrote {cmd.json}")
-    if cmd.png:
-        written, skipped = dataset_stats.gallery(cmd.dataset, cmd.png, cmd.per_object, cmd.objects)
-        print(f"wrote {len(written)} gallery picture(s) to {cmd.png}")
-        if skipped:
-            print(f"no picture for {len(skipped)} object(s) without grasps or mesh (pass --objects DIR): "
-                  f"{', '.join(skipped[:8])}{' ...' if len(skipped) > 8 else ''}")
 
 
 COMMANDS: dict[str, tuple[type, Callable]] = {

@@ -21,7 +21,11 @@ def test_bench_command_measures_and_writes_its_block(tmp_path, capsys):
     assert 0 < row["min_s"] <= row["median_s"] and row["compile_s"] > 0 and 0 <= row["lp_ok"] <= 1
     assert report["machine"]["backend"] == "cpu" and report["machine"]["versions"]["jax"] != "-"
     assert report["cli"] is None
+    w = report["whole"]  # the whole call, in parts: each part took time and the total holds them
+    assert w["batch"] == 4 and min(w["sdf_s"], w["synthesis_s"], w["evaluation_s"]) > 0
+    assert w["total_s"] >= 0.95 * (w["sdf_s"] + w["synthesis_s"] + w["evaluation_s"])  # medians of each
     text = results.read_text()
+    assert "Whole call, box seen for the first time to 4 ranked grasps" in text
     assert text.startswith("# Benchmark results\n\nEarlier sections stay.\n")
     key = benchmark.machine_key(report["machine"])
     assert text.count(f"<!-- ffcgs bench: {key} -->") == 1

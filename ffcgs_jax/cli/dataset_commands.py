@@ -1,0 +1,69 @@
+"""The dataset subcommands: `ffcgs dataset build` (its options are `dataset.config.DatasetConfig`) and
+`ffcgs dataset info`."""
+
+import dataclasses
+import json
+
+import tyro
+
+from ffcgs_jax import files
+from ffcgs_jax.dataset.config import DatasetConfig
+from ffcgs_jax.errors import FfcgsError
+
+
+@dataclasses.dataclass(frozen=True)
+class DatasetInfoCmd:
+    """Print the counts and quality statistics of a dataset file; optionally draw its grasps.
+
+    Attributes:
+        dataset: the .mcap file `ffcgs dataset build` wrote.
+        png: also draw a gallery per object into this directory (<object>.png: its first record's best grasps).
+        objects: the mesh directory the dataset was built from (the file stores SDFs, not meshes); procedural
+            shapes are regenerated without it.
+        per_object: grasps drawn per object.
+        json: also write the statistics to this JSON file.
+    """
+
+    dataset: tyro.conf.Positional[str] = tyro.MISSING
+    png: str | None = None
+    objects: str | None = None
+    per_object: int = 4
+    json: str | None = None
+
+    def check(self) -> None:
+        if not 1 <= self.per_object <= 64:
+            raise FfcgsError(f"--per-object must be in [1, 64], got {self.per_object}")
+
+
+def run_dataset_build(cfg: DatasetConfig) -> None:
+    from ffcgs_jax.dataset import build as dataset_build
+
+    files.check_outputs(("--out", cfg.out))
+    r = dataset_build.build(cfg)
+    done = f"{r['built']} objects built, {r['skipped']} already done, {r['seconds']:.0f} s (timing in {r['timing']})"
+    if r.get("partial"):
+        print(f"wrote {r['out']} with the annotated objects only: {done}; {r['missing']} records missing")
+    elif r["out"] is None:
+        print(f"shard {cfg.shard} finished: {done}; {r['missing']} records of other shards missing, so {cfg.out} "
+              f"is not written yet (rerun without --shard once they are done)")
+    else:
+        print(f"wrote {r['out']}: {done}")
+
+
+def run_dataset_info(cmd: DatasetInfoCmd) -> None:
+    from ffcgs_jax.dataset import stats as dataset_stats
+
+    files.check_outputs(("--json", cmd.json))
+    if cmd.png:
+        files.check_folder(cmd.png, "--png")
+    stats = dataset_stats.stats(cmd.dataset)
+    print(dataset_stats.format_stats(stats))
+    if cmd.json:
+        files.write_text(cmd.json, json.dumps(stats, indent=1))
+        print(f"wrote {cmd.json}")
+    if cmd.png:
+        written, skipped = dataset_stats.gallery(cmd.dataset, cmd.png, cmd.per_object, cmd.objects)
+        print(f"wrote {len(written)} gallery picture(s) to {cmd.png}")
+        if skipped:
+            print(f"no picture for {len(skipped)} object(s) without grasps or mesh (pass --objects DIR): "
+                  f"{', '.join(skipped[:8])}{' ...' if len(skipped) > 8 else ''}")
