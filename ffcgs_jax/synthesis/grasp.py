@@ -2,7 +2,8 @@
 
 `synthesize` is what `ffcgs grasp` runs. The device part (sampling, descent, filters) is one jit-compiled
 function, compiled ahead of time so its compile time is measured apart from the synthesis time; the evaluation
-(Ferrari-Canny epsilon from the mesh itself) runs on the host afterwards with NumPy/SciPy.
+(contacts, force closure and Ferrari-Canny epsilon from the mesh itself, `evaluation.device_metrics`) is a second
+compiled function on the same device, and both results come back to the host in one copy.
 """
 
 import dataclasses
@@ -20,7 +21,7 @@ from jax.sharding import PartitionSpec as P
 
 from ffcgs_jax.config import check_all
 from ffcgs_jax.errors import FfcgsError
-from ffcgs_jax.evaluation import metrics, score
+from ffcgs_jax.evaluation import device_metrics, metrics, score
 from ffcgs_jax.geometry import sdf as sdf_mod
 from ffcgs_jax.hand import kinematics as K
 from ffcgs_jax.hand.kinematics import Hand
@@ -146,9 +147,9 @@ def synthesize(hand: Hand, mesh: trimesh.Trimesh | sdf_mod.GradientSDF, cfg: Gra
     filter and evaluate the grasps. `q` (B, Q), only with `poses`, starts the descent there instead of at the open
     hand (the annotation planner does not: see `dataset.planner.plan` for why).
 
-    `mesh` is what the filters and epsilon read (`metrics.evaluate`): the object's mesh, or for an object known only
-    by its SDF (fused from depth frames) that `GradientSDF`, which is then also the grid planned on. `grid`: plan on
-    this SDF instead of building one from the mesh."""
+    `mesh` is what the filters and epsilon read (`evaluation.device_metrics.evaluate`): the object's mesh, or for an
+    object known only by its SDF (fused from depth frames) that `GradientSDF`, which is then also the grid planned
+    on. `grid`: plan on this SDF instead of building one from the mesh."""
     check_all(cfg)  # nested configs too: an unknown optim.method must not silently fall back
     start = time.perf_counter()
     if grid is None:
@@ -200,15 +201,20 @@ def compile_device(hand: Hand, target: Target, cfg: GraspConfig, given: jax.Arra
         time.perf_counter() - t0
 
 
+def _surface(mesh) -> device_metrics.MeshTable | sdf_mod.GradientSDF:
+    """What the device evaluation measures against: the mesh's triangle table, or an SDF-only object's own grid."""
+    return mesh if isinstance(mesh, sdf_mod.GradientSDF) else device_metrics.mesh_table(mesh)
+
+
 def _finish(hand, mesh, target, cfg, out: DeviceOut, synthesis_s, compile_s, object_name) -> GraspSet:
     t0 = time.perf_counter()
+    ev = device_metrics.evaluate(_surface(mesh), out.opt.final.contacts, out.opt.q, hand.lower, hand.upper,
+                                 target.centre, target.radius, _metrics_config(cfg))
+    out, ev = jax.device_get((out, ev))  # the one device-to-host copy of the call
     opt = out.opt
     q = np.asarray(opt.q, np.float64)
     contacts = np.asarray(opt.final.contacts, np.float64)
     penetration = np.asarray(out.penetration, np.float64)
-    ev = metrics.evaluate(mesh, contacts, q, np.asarray(hand.lower), np.asarray(hand.upper), _metrics_config(cfg),
-                          centre=np.asarray(target.centre, np.float64), radius=float(target.radius),
-                          penetration=penetration)
     E_c = np.asarray(opt.final.E_c, np.float64)
     # usable: collision-free, every filter passed, every fingertip touching and force closure with those contacts
     valid = (~np.asarray(out.pose_collides) & ~np.asarray(out.palm_up) & ~np.asarray(out.tips_below_table)
@@ -268,9 +274,10 @@ def check_on_mesh(hand: Hand, mesh: trimesh.Trimesh, gs: GraspSet, grid: sdf_mod
     `contact_dist_true` and `n_contacts_true`, as `epsilon` ... `n_contacts` (torque origin and scale from `grid`,
     as the synthesis)."""
     target = make_target(grid)
-    ev = metrics.evaluate(mesh, gs["contacts"], gs["q"], np.asarray(hand.lower), np.asarray(hand.upper),
-                          _metrics_config(gs.config), centre=np.asarray(target.centre, np.float64),
-                          radius=float(target.radius))
+    dtype = target.sdf.grid.dtype
+    ev = device_metrics.evaluate(_surface(mesh), jnp.asarray(gs["contacts"], dtype), jnp.asarray(gs["q"], dtype),
+                                 hand.lower, hand.upper, target.centre, target.radius, _metrics_config(gs.config))
+    ev = jax.device_get(ev)
     return {f"{k}_true": np.asarray(ev[k]) for k in ("epsilon", "force_closure", "contact_dist", "n_contacts")}
 
 

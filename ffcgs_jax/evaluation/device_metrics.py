@@ -1,0 +1,371 @@
+"""Grasp evaluation on the device: `metrics.evaluate`'s figures as one jit-compiled function over the whole batch.
+
+`metrics.py` scores grasps from the mesh in float64 NumPy/SciPy, one grasp at a time (trimesh closest points, Qhull,
+HiGHS): about 20 ms a grasp on two CPU cores, which made it most of a `synthesize` call. This module computes the
+same figures for every grasp at once, on the device that ran the synthesis, and stays the path `synthesize` uses;
+`metrics.evaluate` is kept as its independent reference in tests.
+
+- Closest points: every fingertip point against every triangle (brute force over a padded triangle table, which
+  XLA fuses into one reduction); the normal rule of `metrics.mesh_contacts` (face normal; (p - closest) / d off an
+  edge or vertex; on the surface at an edge or vertex the mean of the faces that share it, from tables built once
+  per mesh). The sign comes from the generalised winding number (inside where > 1/2), as the SDF's does, instead
+  of trimesh's ray tests: the same on watertight meshes, and defined on open ones.
+- E_g: the Q-distance LP of the touching contacts' wrenches in the in-graph simplex (`synthesis.lp_jax`), the same
+  LP `metrics.q_distance_reference` gives HiGHS. Fingertips that do not touch exert no force: their wrench rows
+  are replaced by a touching fingertip's, which leaves the wrench hull, and so every figure, unchanged.
+- Ferrari-Canny epsilon: the minimum over unit wrench directions u of the support h(u) = max_j u . w_j (for a hull
+  holding the origin, the distance to its nearest facet). Searched from `EPS_STARTS` spread directions: the
+  `EPS_KEEP` lowest are refined by `quality.refine_directions`, then each is replaced by the normal of the
+  hyperplane through its six most supporting wrenches (a facet normal where the search ended in the facet's basin).
+  Every h(u) of a unit u bounds epsilon from above, so the result is never below Qhull's; bench/RESULTS.md gives how
+  close it comes ("End-to-end speed"). Force closure: a full-rank wrench set (as `metrics.epsilon_q1` asks), the
+  origin in the hull (E_g at most `_g_tol`) and the searched epsilon above `_eps_tol`.
+"""
+
+import collections
+import functools
+import hashlib
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import trimesh
+
+from ffcgs_jax.errors import FfcgsError
+from ffcgs_jax.evaluation.metrics import MetricsConfig, sphere_basis
+from ffcgs_jax.geometry import sdf as sdf_mod
+from ffcgs_jax.geometry.sdf_build import _closest_offset, _orientation, _solid_angle_one, _tri_table
+from ffcgs_jax.synthesis import lp_jax, quality
+from ffcgs_jax.types import Array, Float
+
+EPS_STARTS = 256  # spread start directions of the epsilon search
+EPS_KEEP = 12  # of which the lowest start a facet walk
+EPS_WALK = 5  # steps of each walk (walks measured converged within 6)
+_MAX_PIVOTS = 64  # per simplex phase; the 6-row LPs here take about 10
+_PIVOTS_PER_REFRESH = 4
+_BLAND_AFTER = 8
+_POINT_CHUNK = 4096  # fingertip points per brute-force pass (bounds the (points, triangles) work in flight)
+_MIN_FACES = 256  # the smallest triangle bucket: tables are padded to a power of two >= this
+Host = Array | np.ndarray
+
+
+class MeshTable(NamedTuple):
+    """A triangle mesh as the device evaluation reads it (a pytree; rows padded to a power of two with degenerate
+    triangles 1 km away, never the closest and of zero solid angle).
+
+    Attributes:
+        rows: (F, 12) per triangle a - centre, b - a, c - a, |b - a|^2, (b - a).(c - a), |c - a|^2
+            (`sdf_build._tri_table`): relative to `centre`, so float32 keeps about 1e-8 m on a 10 cm object.
+        face_normal: (F, 3) outward unit face normals.
+        edge_normal: (F, 3, 3) per face, the normalised sum of the face normals sharing its edge ab, bc, ca.
+        vertex_normal: (F, 3, 3) per face, the normalised sum of the face normals sharing its vertex a, b, c.
+        centre: (3,) the frame origin of `rows`, metres.
+        scale: () the mesh's scale (trimesh `scale`): "on the surface" means within 1e-9 of it, as in `metrics`.
+        orient: () +1 for an outward mesh, -1 for an inside-out one (signed volume): winding numbers are multiplied.
+    """
+
+    rows: Float[Array, "F 12"]
+    face_normal: Float[Array, "F 3"]
+    edge_normal: Float[Array, "F 3 3"]
+    vertex_normal: Float[Array, "F 3 3"]
+    centre: Float[Array, " 3"]
+    scale: Float[Array, ""]
+    orient: Float[Array, ""]
+
+
+def mesh_key(mesh: trimesh.Trimesh) -> str:
+    """sha256 of the mesh's float64 vertices and int64 faces: the same geometry gives the same key."""
+    h = hashlib.sha256(np.ascontiguousarray(mesh.vertices, np.float64).tobytes())
+    h.update(np.ascontiguousarray(mesh.faces, np.int64).tobytes())
+    return h.hexdigest()
+
+
+_TABLES: collections.OrderedDict = collections.OrderedDict()
+_TABLES_MAX = 16
+
+
+def mesh_table(mesh: trimesh.Trimesh, dtype=None) -> MeshTable:
+    """The `MeshTable` of `mesh` on the default device, cached per `mesh_key` and dtype (16 meshes, least recently
+    used dropped), so repeated calls on one object build it once."""
+    if not isinstance(mesh, trimesh.Trimesh) or len(mesh.faces) == 0:
+        raise FfcgsError(f"device evaluation needs a triangle mesh with faces, got {type(mesh).__name__}")
+    dtype = jnp.asarray(0.0).dtype if dtype is None else np.dtype(dtype)
+    key = (mesh_key(mesh), str(dtype))
+    if key in _TABLES:
+        _TABLES.move_to_end(key)
+        return _TABLES[key]
+    table = jax.device_put(_build_table(mesh, dtype))
+    _TABLES[key] = table
+    while len(_TABLES) > _TABLES_MAX:
+        _TABLES.popitem(last=False)
+    return table
+
+
+def _unit_rows(v: np.ndarray) -> np.ndarray:
+    n = np.linalg.norm(v, axis=-1, keepdims=True)
+    return np.where(n > 0, v / np.where(n > 0, n, 1.0), 0.0)
+
+
+def _build_table(mesh: trimesh.Trimesh, dtype) -> MeshTable:
+    verts = np.asarray(mesh.vertices, np.float64)
+    faces = np.asarray(mesh.faces, np.int64)
+    if not np.isfinite(verts).all():
+        raise FfcgsError("device evaluation: mesh vertices contain NaN or inf")
+    tri = verts[faces]
+    centre = 0.5 * (tri.reshape(-1, 3).min(0) + tri.reshape(-1, 3).max(0))
+    fn = np.asarray(mesh.face_normals, np.float64)  # `metrics.mesh_contacts` reads trimesh's normals as they are
+    vsum = np.zeros_like(verts)
+    for k in range(3):
+        np.add.at(vsum, faces[:, k], fn)
+    edges = np.sort(np.stack([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]], 1).reshape(-1, 2), axis=1)
+    _, inv = np.unique(edges, axis=0, return_inverse=True)
+    esum = np.zeros((inv.max() + 1, 3))
+    np.add.at(esum, inv.ravel(), np.repeat(fn, 3, axis=0))
+    f = len(faces)
+    f_pad = max(_MIN_FACES, 1 << (f - 1).bit_length())
+    pad = f_pad - f
+
+    def padded(x, fill):
+        return np.concatenate([x, np.broadcast_to(fill, (pad, *x.shape[1:]))]) if pad else x
+
+    rows = _tri_table(tri - centre, np.float64)[:f]  # padded here to our own bucket, not its chunk size
+    far = _tri_table(np.full((1, 3, 3), 1e3), np.float64)[:1]
+    up = np.array([0.0, 0.0, 1.0])
+    return MeshTable(
+        rows=padded(rows, far).astype(dtype),
+        face_normal=padded(fn, up).astype(dtype),
+        edge_normal=padded(_unit_rows(esum[inv.reshape(f, 3)]), up).astype(dtype),
+        vertex_normal=padded(_unit_rows(vsum[faces]), up).astype(dtype),
+        centre=centre.astype(dtype),
+        scale=np.asarray(max(float(mesh.scale), 1e-12), dtype),
+        orient=np.asarray(_orientation(tri), dtype),
+    )
+
+
+# ------------------------------------------------------------------------------------------------ contacts
+
+
+def _tol(dtype) -> tuple[float, float]:
+    """(barycentric tolerance for "on an edge or vertex", relative singular value for "flat") per precision: the
+    reference's 1e-9 in float64; float32 rounds at about 1e-7, so 1e-5 there."""
+    return (1e-9, 1e-9) if jnp.dtype(dtype) == jnp.float64 else (1e-5, 1e-5)
+
+
+def _barycentric(row, closest_rel):
+    """(3,) barycentric coordinates of a point of the triangle `row` (relative to a), from the Gram system."""
+    ab, ac = row[3:6], row[6:9]
+    d00, d01, d11 = row[9], row[10], row[11]
+    r0, r1 = ab @ closest_rel, ac @ closest_rel
+    det = d00 * d11 - d01 * d01
+    ok = det > 0
+    det = jnp.where(ok, det, 1.0)
+    v = jnp.where(ok, (d11 * r0 - d01 * r1) / det, 0.0)
+    w = jnp.where(ok, (d00 * r1 - d01 * r0) / det, 0.0)
+    return jnp.stack([1.0 - v - w, v, w])
+
+
+def _mesh_point(table: MeshTable, p):
+    """Closest point (relative to the table's centre), outward normal and signed distance of one point p (3,)
+    (relative to the centre) on the mesh; `metrics.mesh_contacts`'s rules."""
+    rows = table.rows
+    off = jax.vmap(_closest_offset, (None, 0))(p, rows)  # (F, 3): closest - p
+    d2 = jnp.sum(off * off, axis=1)
+    f = jnp.argmin(d2)
+    row = rows[f]
+    closest = p + off[f]
+    dist = jnp.sqrt(d2[f])
+    tri = jnp.stack([row[0:3], row[0:3] + row[3:6], row[0:3] + row[6:9]])
+    wind = jax.vmap(lambda r: _solid_angle_one(p, jnp.stack([r[0:3], r[0:3] + r[3:6], r[0:3] + r[6:9]])))(rows)
+    inside = table.orient * jnp.sum(wind) / (4 * jnp.pi) > 0.5
+    edge_tol, _ = _tol(p.dtype)
+    bary = _barycentric(row, closest - tri[0])
+    on_edge = jnp.any(bary < edge_tol)
+    on_surface = dist <= edge_tol * table.scale
+    n = table.face_normal[f]
+    away = (p - closest) / jnp.where(dist > 0, dist, 1.0)
+    n = jnp.where(on_edge & ~inside & ~on_surface, away, n)
+    # on the surface at an edge or vertex: the shared normal of the feature the point lies on
+    small = bary < edge_tol
+    vertex = jnp.sum(small) >= 2
+    which_vertex = jnp.argmax(~small)  # the one coordinate that is not 0
+    which_edge = jnp.argmax(small)  # the edge opposite the 0 coordinate: 0 -> bc (edge 1), 1 -> ca (2), 2 -> ab (0)
+    shared = jnp.where(vertex, table.vertex_normal[f, which_vertex],
+                       table.edge_normal[f, jnp.array([1, 2, 0])[which_edge]])
+    n = jnp.where(on_edge & on_surface, shared, n)
+    return closest, n, jnp.where(inside, -dist, dist)
+
+
+def _mesh_contacts(table: MeshTable, points: Float[Array, "P 3"]):
+    rel = points - table.centre[None, :]
+    closest, n, d = jax.lax.map(lambda p: _mesh_point(table, p), rel, batch_size=_POINT_CHUNK)
+    return closest + table.centre[None, :], n, d
+
+
+def _sdf_contacts(grid: sdf_mod.GradientSDF, points: Float[Array, "P 3"]):
+    """`metrics.sdf_contacts` in JAX: the Gradient-SDF's own zero level (for objects fused from depth frames)."""
+    d, n = sdf_mod.query(grid, points)
+    n = n / jnp.linalg.norm(n, axis=1, keepdims=True)
+    return points - d[:, None] * n, n, d
+
+
+# ------------------------------------------------------------------------------------------------ quality
+
+
+def _eps_tol(dtype) -> tuple[float, float]:
+    """(epsilon above which a hull holds the origin strictly, E_g at most which it holds it): the reference's 1e-12
+    for epsilon in float64; the LP's value is exact at a vertex up to rounding."""
+    return (1e-12, 1e-9) if jnp.dtype(dtype) == jnp.float64 else (1e-6, 1e-6)
+
+
+def _simplex(A, b, c, enter_ok, basis, Binv, max_iter: int):
+    """Pivots of the revised simplex on min c.x, A x = b, x >= 0 from a feasible `basis` with inverse `Binv`
+    (Dantzig's rule, Bland's after `_BLAND_AFTER` degenerate pivots; the inverse refreshed every
+    `_PIVOTS_PER_REFRESH`). Columns with `enter_ok` False never enter; a basic one (an artificial left at level 0
+    by phase 1) leaves at the first pivot whose column has a non-zero entry in its row."""
+    m, n = A.shape
+    tol = 1e-9 if A.dtype == jnp.float64 else 1e-5
+    cols = jnp.arange(n)
+
+    def pivot(state):
+        basis, Binv, it, degenerate, done = state
+        xB = jnp.maximum(Binv @ b, 0.0)
+        r = jnp.where(jnp.isin(cols, basis) | ~enter_ok, 0.0, c - A.T @ (Binv.T @ c[basis]))
+        neg = r < -tol
+        enter = jnp.where(degenerate >= _BLAND_AFTER, jnp.argmax(neg), jnp.argmin(r))
+        u = Binv @ A[:, enter]
+        stuck = ~enter_ok[basis] & (jnp.abs(u) > tol)
+        ratio = jnp.where(stuck, 0.0, jnp.where(u > tol, xB / jnp.where(u > tol, u, 1.0), jnp.inf))
+        best = jnp.min(ratio)
+        leave = jnp.argmin(jnp.where(ratio <= best + tol, basis, n))
+        stop = done | ~jnp.any(neg) | ~jnp.isfinite(best)
+        row = Binv[leave] / jnp.where(jnp.abs(u[leave]) > 0, u[leave], 1.0)
+        new = (Binv - u[:, None] * row[None, :]).at[leave].set(row)
+        return (jnp.where(stop, basis, basis.at[leave].set(enter)), jnp.where(stop, Binv, new),
+                it + jnp.where(stop, 0, 1), jnp.where(best <= tol, degenerate + 1, 0), stop)
+
+    def trip(state):
+        for _ in range(_PIVOTS_PER_REFRESH):
+            state = pivot(state)
+        basis, _, it, degenerate, done = state
+        return basis, jnp.linalg.inv(A[:, basis]), it, degenerate, done
+
+    state = (basis, Binv, jnp.zeros((), jnp.int32), jnp.zeros((), jnp.int32), jnp.zeros((), bool))
+    basis, Binv, _, _, _ = jax.lax.while_loop(lambda s: ~s[4] & (s[2] < max_iter), trip, state)
+    return basis, Binv
+
+
+def ray_facet(W: Float[Array, "6 N"], d: Float[Array, " 6"]) -> Float[Array, " 6"]:
+    """Unit normal of the facet of conv(W) through which the ray from the origin along d leaves (the origin inside).
+
+    The ray leaves at d / g, g = min 1.lam s.t. W lam = d, lam >= 0 (the gauge of d); that LP's dual optimum y is
+    the polar vertex of the facet (y . w <= 1 with equality on it), so the normal is y / |y| and the facet's distance
+    1 / |y|. Two-phase simplex on the 6 rows: phase 1 from artificial columns sign(d_i) e_i."""
+    n = W.shape[1]
+    dt = W.dtype
+    s = jnp.where(d >= 0, 1.0, -1.0).astype(dt)
+    A = jnp.concatenate([W, jnp.diag(s)], axis=1)
+    art = jnp.arange(n + 6) >= n
+    basis, Binv = jnp.arange(n, n + 6), jnp.diag(s)
+    basis, Binv = _simplex(A, d, art.astype(dt), jnp.ones(n + 6, bool), basis, Binv, _MAX_PIVOTS)
+    c = (~art).astype(dt)
+    basis, Binv = _simplex(A, d, c, ~art, basis, Binv, _MAX_PIVOTS)
+    y = Binv.T @ c[basis]
+    size = jnp.linalg.norm(y)
+    return jnp.where(size > 0, y / jnp.where(size > 0, size, 1.0), d)
+
+
+def search_epsilon(W: Float[Array, "6 N"], starts: Float[Array, "M 6"]) -> Float[Array, ""]:
+    """min over searched unit directions u of h(u) = max_j u . w_j: an upper bound of the signed Ferrari-Canny
+    epsilon, exact where the walk reaches the nearest facet (see the module docstring). Meaningful when the
+    origin is inside the hull (force closure); otherwise only its sign is."""
+    h0 = jnp.max(starts @ W, axis=1)
+    dirs = starts[jax.lax.top_k(-h0, EPS_KEEP)[1]]
+    best = jnp.min(h0)
+
+    def walk(_, carry):
+        dirs, best = carry
+        dirs = jax.vmap(ray_facet, (None, 0))(W, dirs)
+        return dirs, jnp.minimum(best, jnp.min(jnp.max(dirs @ W, axis=1)))
+
+    return jax.lax.fori_loop(0, EPS_WALK, walk, (dirs, best))[1]
+
+
+def _grasp(closest, normals, signed, q, lower, upper, centre, radius, starts, U, cfg: MetricsConfig):
+    dt = closest.dtype
+    touching = jnp.abs(signed) <= cfg.contact_tol
+    any_touch = jnp.any(touching)
+    src = jnp.where(touching, jnp.arange(len(signed)), jnp.argmax(touching))  # silent tips repeat a touching one
+    W = quality.primitive_wrenches(closest[src], normals[src], centre, radius, cfg.mu, cfg.cone_edges)
+    e_g, lp_ok, _ = lp_jax.q_distance(W, U)
+    sv = jnp.linalg.svd(W.T - jnp.mean(W, axis=1)[None, :], compute_uv=False)
+    _, rank_tol = _tol(dt)
+    full_rank = (sv[0] > 0) & (sv[-1] > rank_tol * sv[0])
+    eps = search_epsilon(W, starts)
+    eps_tol, g_tol = _eps_tol(dt)
+    closure = any_touch & lp_ok & full_rank & (e_g <= g_tol) & (eps > eps_tol)
+    e_g = jnp.where(any_touch, e_g, jnp.nan)
+    e_c = jnp.sqrt(jnp.mean((signed + cfg.d0) ** 2))
+    mid, half = 0.5 * (lower + upper), 0.5 * (upper - lower)
+    e_q = jnp.mean(((q - mid) / (upper - lower)) ** 2)
+    return dict(
+        epsilon=jnp.where(closure, eps, 0.0),
+        force_closure=closure,
+        E_g=e_g,
+        E=e_g + cfg.a_c * e_c + cfg.a_q * e_q,
+        E_c=e_c,
+        E_c_cm=100 * e_c,
+        E_q=e_q,
+        joint_limit_use=jnp.max(jnp.abs(q - mid) / half),
+        contact_dist=signed,
+        normals=normals,
+        n_contacts=jnp.sum(touching).astype(jnp.int32),
+        lp_ok=lp_ok,
+    )
+
+
+def _evaluate(surface, contacts, q, lower, upper, centre, radius, cfg: MetricsConfig):
+    b, c = contacts.shape[:2]
+    flat = contacts.reshape(-1, 3)
+    if isinstance(surface, MeshTable):
+        closest, normals, signed = _mesh_contacts(surface, flat)
+    else:
+        closest, normals, signed = _sdf_contacts(surface, flat)
+    U = quality.basis(cfg.basis_size)  # a host array: the LP's basis is part of its compiled form
+    starts = jnp.asarray(sphere_basis(EPS_STARTS).T, contacts.dtype)
+    grasp = functools.partial(_grasp, U=U, cfg=cfg)
+    return jax.vmap(grasp, (0, 0, 0, 0, None, None, None, None, None))(
+        closest.reshape(b, c, 3), normals.reshape(b, c, 3), signed.reshape(b, c), q, lower, upper, centre, radius,
+        starts)
+
+
+_evaluate_jit = jax.jit(_evaluate, static_argnames=("cfg",))
+
+
+def evaluate(surface: MeshTable | sdf_mod.GradientSDF, contacts: Float[Array, "B C 3"], q: Float[Array, "B Q"],
+             lower: Float[Host, " Q"], upper: Float[Host, " Q"], centre: Float[Host, " 3"],
+             radius: Float[Host, ""] | float, cfg: MetricsConfig = MetricsConfig()) -> dict[str, Array]:
+    """`metrics.evaluate`'s figures for a batch of grasps, computed on the device in one compiled call; the results
+    stay on the device (fetch them once with `jax.device_get`).
+
+    Args:
+        surface: the object: a `MeshTable` (`mesh_table(mesh)`), or a `GradientSDF` for an object known only by its
+            SDF (its own zero level, as `metrics.sdf_contacts`).
+        contacts: (B, C, 3) fingertip contact points, metres, in the surface's frame.
+        q: (B, Q) channel positions; lower, upper: (Q,) their limits.
+        centre: (3,) torque origin; radius: torque scale L > 0 (the synthesis's `Target`).
+        cfg: friction, cone, basis, energy weights and the touching tolerance.
+
+    Returns:
+        dict of device arrays: epsilon, force_closure, E_g (NaN without a touching fingertip), E, E_c, E_c_cm, E_q,
+        joint_limit_use, n_contacts, lp_ok (B,); contact_dist (B, C); normals (B, C, 3).
+    """
+    cfg.check()
+    if contacts.ndim != 3 or contacts.shape[-1] != 3 or q.ndim != 2 or q.shape[0] != contacts.shape[0]:
+        raise FfcgsError(f"device evaluation needs contacts (B, C, 3) and q (B, Q), got {contacts.shape} and "
+                         f"{q.shape}")
+    dt = contacts.dtype
+    cast = lambda x: jnp.asarray(x, dt)  # noqa: E731
+    surface = jax.tree.map(cast, surface)
+    return _evaluate_jit(surface, contacts, cast(q), cast(lower), cast(upper), cast(centre), cast(radius), cfg=cfg)
+
