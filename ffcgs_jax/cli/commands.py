@@ -92,6 +92,8 @@ class BenchCmd:
         sampler: wrist-pose sampler (cvae, geometric, random).
         backend: "default" (JAX's choice: the GPU when there is one), "cpu" or "gpu".
         cli_start: also time a cold and a warm `ffcgs grasp` in fresh processes.
+        whole_object: the mesh whose whole `synthesize` call is timed, from the mesh to ranked grasps, each time as
+            if seen for the first time (grid and triangle caches cleared) and with its grid cached; "" = `object`.
         results: Markdown file to put this machine's block into ("" = print only).
         json: also write the report as JSON here.
     """
@@ -107,6 +109,7 @@ class BenchCmd:
     sampler: str = "cvae"
     backend: str = "default"
     cli_start: bool = True
+    whole_object: str = ""
     results: str = "bench/RESULTS.md"
     json: str | None = None
 
@@ -312,8 +315,10 @@ def run_grasp(cmd: GraspCmd) -> None:
         from ffcgs_jax.cli.depth_commands import bounds_box, fuse_rows, true_mesh_rows
         from ffcgs_jax.geometry import depth_object
 
+        t0 = time.perf_counter()
         fused = depth_object.from_depth(cmd.depth, cmd.grasp.sdf.res, cmd.table_z, bounds_box(cmd.bounds),
                                         margin=cmd.grasp.sdf.margin, min_margin=cmd.grasp.sdf.min_margin)
+        depth_s = time.perf_counter() - t0  # frames on disk to the Gradient-SDF: this object's "SDF build"
         grid = fused.grid
         rows = fuse_rows(fused, cmd.depth) + [("evaluation surface", "the fused SDF (filters, epsilon, "
                                                "contacts); --object adds the true mesh's figures")]
@@ -323,6 +328,8 @@ def run_grasp(cmd: GraspCmd) -> None:
     gs = synthesize(hand, mesh if cmd.depth is None else fused.grid, cmd.grasp, name, grid=grid, poses=poses)
     if mesh is not None:
         gs.arrays.update(mesh_io.identity(cmd.object, cmd.grasp.sdf.scale, mesh))
+    if cmd.depth is not None:
+        gs.arrays.update(sdf_s=np.asarray(depth_s, np.float64), total_s=np.asarray(gs["total_s"] + depth_s))
     rows += summary_rows(gs)
     if cmd.depth is not None:
         gs.arrays.update(depth_source=np.array(str(Path(cmd.depth).expanduser().resolve())),

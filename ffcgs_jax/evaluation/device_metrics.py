@@ -25,6 +25,7 @@ same figures for every grasp at once, on the device that ran the synthesis, and 
 import collections
 import functools
 import hashlib
+import time
 from typing import NamedTuple
 
 import jax
@@ -102,6 +103,11 @@ def mesh_table(mesh: trimesh.Trimesh, dtype=None) -> MeshTable:
     return table
 
 
+def clear_cache() -> None:
+    """Forget the cached triangle tables (`mesh_table` builds the next one anew)."""
+    _TABLES.clear()
+
+
 def _unit_rows(v: np.ndarray) -> np.ndarray:
     n = np.linalg.norm(v, axis=-1, keepdims=True)
     return np.where(n > 0, v / np.where(n > 0, n, 1.0), 0.0)
@@ -147,9 +153,11 @@ def _build_table(mesh: trimesh.Trimesh, dtype) -> MeshTable:
 
 
 def _tol(dtype) -> tuple[float, float]:
-    """(barycentric tolerance for "on an edge or vertex", relative singular value for "flat") per precision: the
-    reference's 1e-9 in float64; float32 rounds at about 1e-7, so 1e-5 there."""
-    return (1e-9, 1e-9) if jnp.dtype(dtype) == jnp.float64 else (1e-5, 1e-5)
+    """(barycentric tolerance for "on an edge or vertex", relative singular value under which a wrench set is
+    flat) per precision. The reference's 1e-9 for both in float64, but the flat test reads eigenvalues of the Gram
+    matrix, the squares, which rounding holds only down to ~1e-16 relative: 1e-7 there. Float32 rounds at ~1e-7:
+    1e-5 on edges, 1e-3 for flatness (sets between 1e-9 and these are nearly flat: their epsilon is ~0)."""
+    return (1e-9, 1e-7) if jnp.dtype(dtype) == jnp.float64 else (1e-5, 1e-3)
 
 
 def _barycentric(row, closest_rel):
@@ -218,40 +226,63 @@ def _eps_tol(dtype) -> tuple[float, float]:
     return (1e-12, 1e-9) if jnp.dtype(dtype) == jnp.float64 else (1e-6, 1e-6)
 
 
-def _simplex(A, b, c, enter_ok, basis, Binv, max_iter: int):
-    """Pivots of the revised simplex on min c.x, A x = b, x >= 0 from a feasible `basis` with inverse `Binv`
-    (Dantzig's rule, Bland's after `_BLAND_AFTER` degenerate pivots; the inverse refreshed every
-    `_PIVOTS_PER_REFRESH`). Columns with `enter_ok` False never enter; a basic one (an artificial left at level 0
-    by phase 1) leaves at the first pivot whose column has a non-zero entry in its row."""
-    m, n = A.shape
-    tol = 1e-9 if A.dtype == jnp.float64 else 1e-5
-    cols = jnp.arange(n)
+def _simplex(W, s, d, phase: int, basis, Binv, max_iter: int):
+    """Pivots of the revised simplex on min c.x, [W | diag(s)] x = d, x >= 0 from a feasible `basis` with inverse
+    `Binv`: phase 1 prices the 6 artificial columns diag(s) at 1 and the wrenches at 0, phase 2 the wrenches at 1,
+    and there the artificials never enter; a basic one (left at level 0 by phase 1) leaves at the first pivot whose
+    column has a non-zero entry in its row. Dantzig's rule, Bland's after `_BLAND_AFTER` degenerate pivots, the
+    inverse refreshed every `_PIVOTS_PER_REFRESH` (`lp_jax.inverse`).
+
+    Written with one-hot selections, elementwise products and sums instead of gathers, scatters, matrix products
+    and library inverses: on a GPU XLA fuses these into a few kernels per pivot, where small batched matrix
+    products and LU factorisations are each a library call (`synthesis.lp_jax` says the same of its pivots)."""
+    n = W.shape[1]
+    dt = W.dtype
+    tol = 1e-9 if dt == jnp.float64 else 1e-5
+    cols = jnp.arange(n + 6)
+    cost = jnp.where(cols < n, 0.0 if phase == 1 else 1.0, 1.0 if phase == 1 else 0.0).astype(dt)
+    enter_ok = jnp.ones(n + 6, bool) if phase == 1 else cols < n
+
+    def column(j):
+        """Column j of [W | diag(s)] (6,), by a one-hot sum rather than a gather."""
+        hot = (cols == j).astype(dt)
+        return jnp.sum(W * hot[None, :n], axis=1) + s * hot[n:]
+
+    def matrix(basis):
+        hot = (basis[None, :] == cols[:, None]).astype(dt)  # (n + 6, 6)
+        return jnp.sum(W[:, :, None] * hot[None, :n, :], axis=1) + s[:, None] * hot[n:, :]
 
     def pivot(state):
         basis, Binv, it, degenerate, done = state
-        xB = jnp.maximum(Binv @ b, 0.0)
-        r = jnp.where(jnp.isin(cols, basis) | ~enter_ok, 0.0, c - A.T @ (Binv.T @ c[basis]))
+        xB = jnp.maximum(jnp.sum(Binv * d[None, :], axis=1), 0.0)
+        y = jnp.sum(Binv * jnp.sum(cost[None, :] * (basis[:, None] == cols[None, :]), axis=1)[:, None], axis=0)
+        priced = jnp.concatenate([jnp.sum(W * y[:, None], axis=0), s * y])
+        in_basis = jnp.any(basis[:, None] == cols[None, :], axis=0)
+        r = jnp.where(in_basis | ~enter_ok, 0.0, cost - priced)
         neg = r < -tol
         enter = jnp.where(degenerate >= _BLAND_AFTER, jnp.argmax(neg), jnp.argmin(r))
-        u = Binv @ A[:, enter]
-        stuck = ~enter_ok[basis] & (jnp.abs(u) > tol)
+        u = jnp.sum(Binv * column(enter)[None, :], axis=1)
+        stuck = (basis >= n) & (phase == 2) & (jnp.abs(u) > tol)
         ratio = jnp.where(stuck, 0.0, jnp.where(u > tol, xB / jnp.where(u > tol, u, 1.0), jnp.inf))
         best = jnp.min(ratio)
-        leave = jnp.argmin(jnp.where(ratio <= best + tol, basis, n))
+        leave = jnp.argmin(jnp.where(ratio <= best + tol, basis, n + 6))
         stop = done | ~jnp.any(neg) | ~jnp.isfinite(best)
-        row = Binv[leave] / jnp.where(jnp.abs(u[leave]) > 0, u[leave], 1.0)
-        new = (Binv - u[:, None] * row[None, :]).at[leave].set(row)
-        return (jnp.where(stop, basis, basis.at[leave].set(enter)), jnp.where(stop, Binv, new),
+        at = jnp.arange(6) == leave
+        u_leave = jnp.sum(jnp.where(at, u, 0.0))
+        row = jnp.sum(jnp.where(at[:, None], Binv, 0.0), axis=0) / jnp.where(jnp.abs(u_leave) > 0, u_leave, 1.0)
+        new = jnp.where(at[:, None], row[None, :], Binv - u[:, None] * row[None, :])
+        return (jnp.where(stop, basis, jnp.where(at, enter, basis)), jnp.where(stop, Binv, new),
                 it + jnp.where(stop, 0, 1), jnp.where(best <= tol, degenerate + 1, 0), stop)
 
     def trip(state):
         for _ in range(_PIVOTS_PER_REFRESH):
             state = pivot(state)
-        basis, _, it, degenerate, done = state
-        return basis, jnp.linalg.inv(A[:, basis]), it, degenerate, done
+        basis, Binv, it, degenerate, done = state
+        fresh, smallest = lp_jax.inverse(matrix(basis))
+        return basis, jnp.where(smallest > 0, fresh, Binv), it, degenerate, done
 
     state = (basis, Binv, jnp.zeros((), jnp.int32), jnp.zeros((), jnp.int32), jnp.zeros((), bool))
-    basis, Binv, _, _, _ = jax.lax.while_loop(lambda s: ~s[4] & (s[2] < max_iter), trip, state)
+    basis, Binv, _, _, _ = jax.lax.while_loop(lambda st: ~st[4] & (st[2] < max_iter), trip, state)
     return basis, Binv
 
 
@@ -260,18 +291,15 @@ def ray_facet(W: Float[Array, "6 N"], d: Float[Array, " 6"]) -> Float[Array, " 6
 
     The ray leaves at d / g, g = min 1.lam s.t. W lam = d, lam >= 0 (the gauge of d); that LP's dual optimum y is
     the polar vertex of the facet (y . w <= 1 with equality on it), so the normal is y / |y| and the facet's distance
-    1 / |y|. Two-phase simplex on the 6 rows: phase 1 from artificial columns sign(d_i) e_i."""
+    1 / |y|. Two-phase simplex on the 6 rows: phase 1 from the artificial columns sign(d_i) e_i."""
     n = W.shape[1]
     dt = W.dtype
     s = jnp.where(d >= 0, 1.0, -1.0).astype(dt)
-    A = jnp.concatenate([W, jnp.diag(s)], axis=1)
-    art = jnp.arange(n + 6) >= n
     basis, Binv = jnp.arange(n, n + 6), jnp.diag(s)
-    basis, Binv = _simplex(A, d, art.astype(dt), jnp.ones(n + 6, bool), basis, Binv, _MAX_PIVOTS)
-    c = (~art).astype(dt)
-    basis, Binv = _simplex(A, d, c, ~art, basis, Binv, _MAX_PIVOTS)
-    y = Binv.T @ c[basis]
-    size = jnp.linalg.norm(y)
+    basis, Binv = _simplex(W, s, d, 1, basis, Binv, _MAX_PIVOTS)
+    basis, Binv = _simplex(W, s, d, 2, basis, Binv, _MAX_PIVOTS)
+    y = jnp.sum(Binv * (basis < n).astype(dt)[:, None], axis=0)  # B^-T c_B, c_B = 1 on wrench columns
+    size = jnp.sqrt(jnp.sum(y * y))
     return jnp.where(size > 0, y / jnp.where(size > 0, size, 1.0), d)
 
 
@@ -283,12 +311,29 @@ def search_epsilon(W: Float[Array, "6 N"], starts: Float[Array, "M 6"]) -> Float
     dirs = starts[jax.lax.top_k(-h0, EPS_KEEP)[1]]
     best = jnp.min(h0)
 
-    def walk(_, carry):
-        dirs, best = carry
-        dirs = jax.vmap(ray_facet, (None, 0))(W, dirs)
-        return dirs, jnp.minimum(best, jnp.min(jnp.max(dirs @ W, axis=1)))
+    def walk(carry):
+        step, dirs, best, _ = carry
+        new = jax.vmap(ray_facet, (None, 0))(W, dirs)
+        moved = jnp.any(jnp.abs(new - dirs) > 1e-6)
+        return step + 1, new, jnp.minimum(best, jnp.min(jnp.max(new @ W, axis=1))), moved
 
-    return jax.lax.fori_loop(0, EPS_WALK, walk, (dirs, best))[1]
+    # a walk that returns the facet it started from has ended (the origin's foot point lies in that facet)
+    carry = (jnp.zeros((), jnp.int32), dirs, best, jnp.ones((), bool))
+    return jax.lax.while_loop(lambda c: (c[0] < EPS_WALK) & c[3], walk, carry)[2]
+
+
+def _full_rank(W: Float[Array, "6 N"]) -> Array:
+    """Whether the centred wrenches span R^6 (`metrics.epsilon_q1`'s test: smallest singular value above
+    `_tol`'s relative bound), from the Gram matrix G: its smallest eigenvalue lies within a factor of 6 of
+    1 / trace(G^-1) and its largest of trace(G) / 6 .. trace(G), so the ratio is tested to that factor, by an
+    elementwise Gauss-Jordan inverse instead of a library SVD (see `_simplex`)."""
+    Wc = W - jnp.mean(W, axis=1, keepdims=True)
+    G = jnp.sum(Wc[:, None, :] * Wc[None, :, :], axis=2)
+    inv, smallest = lp_jax.inverse(G)
+    tr, tr_inv = jnp.trace(G), jnp.trace(inv)
+    _, rank_tol = _tol(W.dtype)
+    ok = (smallest > 0) & jnp.isfinite(tr_inv) & (tr_inv > 0)
+    return ok & (1.0 / jnp.where(ok, tr_inv, 1.0) > rank_tol**2 * tr)
 
 
 def _grasp(closest, normals, signed, q, lower, upper, centre, radius, starts, U, cfg: MetricsConfig):
@@ -298,9 +343,7 @@ def _grasp(closest, normals, signed, q, lower, upper, centre, radius, starts, U,
     src = jnp.where(touching, jnp.arange(len(signed)), jnp.argmax(touching))  # silent tips repeat a touching one
     W = quality.primitive_wrenches(closest[src], normals[src], centre, radius, cfg.mu, cfg.cone_edges)
     e_g, lp_ok, _ = lp_jax.q_distance(W, U)
-    sv = jnp.linalg.svd(W.T - jnp.mean(W, axis=1)[None, :], compute_uv=False)
-    _, rank_tol = _tol(dt)
-    full_rank = (sv[0] > 0) & (sv[-1] > rank_tol * sv[0])
+    full_rank = _full_rank(W)
     eps = search_epsilon(W, starts)
     eps_tol, g_tol = _eps_tol(dt)
     closure = any_touch & lp_ok & full_rank & (e_g <= g_tol) & (eps > eps_tol)
@@ -340,6 +383,11 @@ def _evaluate(surface, contacts, q, lower, upper, centre, radius, cfg: MetricsCo
 
 
 _evaluate_jit = jax.jit(_evaluate, static_argnames=("cfg",))
+_COMPILED: dict = {}
+
+
+def _signature(x) -> tuple:
+    return (x.shape, str(x.dtype), str(getattr(x, "sharding", None)))
 
 
 def evaluate(surface: MeshTable | sdf_mod.GradientSDF, contacts: Float[Array, "B C 3"], q: Float[Array, "B Q"],
@@ -360,12 +408,24 @@ def evaluate(surface: MeshTable | sdf_mod.GradientSDF, contacts: Float[Array, "B
         dict of device arrays: epsilon, force_closure, E_g (NaN without a touching fingertip), E, E_c, E_c_cm, E_q,
         joint_limit_use, n_contacts, lp_ok (B,); contact_dist (B, C); normals (B, C, 3).
     """
+    run, _ = compile_evaluate(surface, contacts, q, lower, upper, centre, radius, cfg)
+    return run()
+
+
+def compile_evaluate(surface, contacts, q, lower, upper, centre, radius, cfg: MetricsConfig = MetricsConfig()):
+    """`evaluate`'s arguments checked and compiled ahead of time: `run()` gives its result, and the seconds the
+    compilation took (0 when an earlier call of the same shapes compiled it), so callers report compile apart."""
     cfg.check()
     if contacts.ndim != 3 or contacts.shape[-1] != 3 or q.ndim != 2 or q.shape[0] != contacts.shape[0]:
         raise FfcgsError(f"device evaluation needs contacts (B, C, 3) and q (B, Q), got {contacts.shape} and "
                          f"{q.shape}")
     dt = contacts.dtype
     cast = lambda x: jnp.asarray(x, dt)  # noqa: E731
-    surface = jax.tree.map(cast, surface)
-    return _evaluate_jit(surface, contacts, cast(q), cast(lower), cast(upper), cast(centre), cast(radius), cfg=cfg)
+    args = (jax.tree.map(cast, surface), contacts, cast(q), cast(lower), cast(upper), cast(centre), cast(radius))
+    key = (str(jax.tree.map(_signature, args)), type(surface).__name__, cfg, jax.default_backend())
+    t0 = time.perf_counter()
+    if key not in _COMPILED:
+        _COMPILED[key] = _evaluate_jit.lower(*args, cfg=cfg).compile()
+    compiled = _COMPILED[key]
+    return (lambda: compiled(*args)), time.perf_counter() - t0
 

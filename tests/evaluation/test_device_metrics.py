@@ -163,3 +163,28 @@ def test_bad_shapes_are_refused():
     mesh = mesh_io.load_mesh("box")
     with pytest.raises(Exception, match="contacts"):
         dm.evaluate(dm.mesh_table(mesh), jnp.zeros((2, 3)), jnp.zeros((2, 9)), LO, HI, np.zeros(3), 0.1, CFG)
+
+
+@pytest.mark.skipif(jax.default_backend() != "gpu", reason="needs a GPU (runs on the device machine)")
+def test_gpu_float32_agrees_with_cpu_float64(monkeypatch):
+    mesh = mesh_io.load_mesh("mug")
+    contacts, q = _grasps(mesh, N, seed=3)
+    centre, radius = metrics.default_centre_radius(mesh)
+    cpu = jax.devices("cpu")[0]
+    with jax.default_device(cpu), monkeypatch.context() as m:
+        m.setenv("FFCGS_LP_KERNEL", "xla")  # the LP kernel is picked by the default backend, the GPU's
+        ref = jax.device_get(dm.evaluate(dm.mesh_table(mesh), jnp.asarray(contacts), jnp.asarray(q), LO, HI, centre,
+                                         radius, CFG))
+    f32 = lambda x: jnp.asarray(x, jnp.float32)  # noqa: E731
+    gpu = jax.device_get(dm.evaluate(dm.mesh_table(mesh, jnp.float32), f32(contacts), f32(q), f32(LO), f32(HI),
+                                     f32(centre), f32(radius), CFG))
+    np.testing.assert_allclose(gpu["contact_dist"], ref["contact_dist"], atol=1e-6)
+    far = np.abs(np.abs(ref["contact_dist"]) - CFG.contact_tol) > 1e-5  # not at the touching threshold
+    np.testing.assert_array_equal(gpu["n_contacts"][far.all(1)], ref["n_contacts"][far.all(1)])
+    same = far.all(1) & (np.abs(ref["E_g"]) > 1e-4) | (ref["E_g"] == 0)
+    np.testing.assert_allclose(gpu["E_g"][same], ref["E_g"][same], atol=1e-4)
+    fc = ref["force_closure"] & gpu["force_closure"]
+    assert np.mean(gpu["force_closure"] == ref["force_closure"]) >= 0.95
+    # a walk may end on another local minimum in float32: most agree
+    rel = (gpu["epsilon"][fc] - ref["epsilon"][fc]) / ref["epsilon"][fc]
+    assert np.median(np.abs(rel)) < 1e-3
