@@ -1,10 +1,13 @@
 """`ffcgs bench`: how fast grasp synthesis runs on this machine, as a table written into bench/RESULTS.md.
 
 The rows time the compiled device part of `synthesize` (sample B wrist poses, T descent steps, the filters) once the
-object's Gradient-SDF exists. The whole call (`time_whole_call`: the smallest batch, 32 by default, from a mesh seen
-for the first time, the SDF build and the host evaluation included) is timed apart, in parts, because that is what a
-user waits for. Each row is one compilation, reported apart, one warm-up call, then the median of `repeats` calls.
-JAX's persistent compilation cache is off while timing, so compile times are real compilations.
+object's Gradient-SDF exists, and the same with the device evaluation after it (contacts, force closure, epsilon on
+the mesh: `evaluation.device_metrics`), which is the throughput a user gets. The whole call (`time_whole_call`: the
+smallest batch, 32 by default, from a mesh to ranked grasps on the host: SDF build, device part, evaluation and the
+copy back) is timed apart, in parts, because that is what a user waits for: once as if the mesh were new (the grid
+and triangle caches cleared), once with its grid cached. Each row is one compilation, reported apart, one warm-up
+call, then the median of `repeats` calls. JAX's persistent compilation cache is off while timing, so compile times
+are real compilations.
 
 CLI start: `ffcgs grasp OBJECT --n 32 --iters T` run twice in fresh processes that share a new, empty compilation
 cache: cold (nothing cached) and warm (the executables the first run stored). Wall time of the whole process and
@@ -42,17 +45,20 @@ class Row:
     median_s: float
     min_s: float
     lp_ok: float  # fraction of poses whose every LP solved
+    with_eval_s: float | None = None  # median of the device part and the device evaluation of its grasps
 
     @property
     def rate(self) -> float:
         return self.batch / self.median_s
 
 
-def time_synthesis(hand, target, cfg, repeats: int) -> Row:
-    """Compile the device part for `cfg` and time it: one warm-up call, then the median of `repeats` calls."""
+def time_synthesis(hand, target, cfg, repeats: int, surface=None) -> Row:
+    """Compile the device part for `cfg` and time it: one warm-up call, then the median of `repeats` calls; with a
+    `surface` (`device_metrics.mesh_table`), also the device part followed by the evaluation of its grasps."""
     import jax
 
-    from ffcgs_jax.synthesis.grasp import compile_device
+    from ffcgs_jax.evaluation import device_metrics
+    from ffcgs_jax.synthesis.grasp import _metrics_config, compile_device
 
     run, compile_s = compile_device(hand, target, cfg)
     times, out = [], None
@@ -61,21 +67,39 @@ def time_synthesis(hand, target, cfg, repeats: int) -> Row:
         out = jax.block_until_ready(run(jax.random.PRNGKey(i)))
         times.append(time.perf_counter() - t0)
     devices = cfg.devices or len(jax.local_devices())
+    with_eval = []
+    for i in range(repeats + 1 if surface is not None else 0):
+        t0 = time.perf_counter()
+        o = run(jax.random.PRNGKey(i))
+        jax.block_until_ready(device_metrics.evaluate(surface, o.opt.final.contacts, o.opt.q, hand.lower, hand.upper,
+                                                      target.centre, target.radius, _metrics_config(cfg)))
+        with_eval.append(time.perf_counter() - t0)
     return Row(cfg.energy.lp_solver, cfg.n, devices, compile_s, statistics.median(times[1:]), min(times[1:]),
-               float(np.mean(np.asarray(out.opt.lp_ok))))
+               float(np.mean(np.asarray(out.opt.lp_ok))), statistics.median(with_eval[1:]) if with_eval else None)
 
 
 def time_whole_call(hand, mesh, cfg, repeats: int) -> dict:
-    """What a user waits for from a mesh seen for the first time to ranked grasps: `synthesize` whole (SDF build,
-    device part, host evaluation), compiled beforehand; medians of `repeats` calls after a warm-up."""
+    """What a user waits for, from a mesh to ranked grasps: `synthesize` whole (SDF build, device part, evaluation,
+    the copy back) and the ranking, compiled beforehand; medians of `repeats` calls, each with the mesh's grid and
+    triangle table built anew ("first": a mesh seen for the first time) and again with them cached ("cached")."""
+    from ffcgs_jax.evaluation import device_metrics
+    from ffcgs_jax.geometry import sdf
     from ffcgs_jax.synthesis.grasp import synthesize
 
     parts = ("sdf_s", "synthesis_s", "evaluation_s", "total_s")
-    runs = []
-    for i in range(repeats + 1):
-        gs = synthesize(hand, mesh, dataclasses.replace(cfg, seed=i))
-        runs.append({k: float(gs[k]) for k in parts})
-    return {"batch": cfg.n, **{k: statistics.median(r[k] for r in runs[1:]) for k in parts}}
+    synthesize(hand, mesh, cfg).order()  # compiles what the calls below reuse
+    runs = {"first": [], "cached": []}
+    for i in range(repeats):
+        sdf.clear_cache()
+        device_metrics.clear_cache()
+        for kind in runs:
+            t0 = time.perf_counter()
+            gs = synthesize(hand, mesh, dataclasses.replace(cfg, seed=i))
+            gs.order()
+            wall = time.perf_counter() - t0
+            runs[kind].append({**{k: float(gs[k]) for k in parts}, "wall_s": wall})
+    return {"batch": cfg.n, "faces": int(len(mesh.faces)),
+            **{kind: {k: statistics.median(r[k] for r in rs) for k in (*parts, "wall_s")} for kind, rs in runs.items()}}
 
 
 def machine() -> dict:
@@ -164,12 +188,15 @@ def markdown(report: dict) -> str:
     if lat:
         lines += [f"Latency, {p['latency_batch']} grasps × {p['iters']} steps: "
                   + ", ".join(f"**{r['median_s'] * 1e3:.1f} ms** ({r['solver']} LP)" for r in lat), ""]
-    lines += ["| LP solver | devices | poses B | compile (s) | median (ms) | min (ms) | grasps/s | LP ok |",
-              "|---|---|---|---|---|---|---|---|"]
+    lines += ["| LP solver | devices | poses B | compile (s) | median (ms) | min (ms) | grasps/s "
+              "| with evaluation (ms) | grasps/s with evaluation | LP ok |",
+              "|---|---|---|---|---|---|---|---|---|---|"]
     for r in report["rows"]:
+        ev = r.get("with_eval_s")
+        ev_cells = f"{ev * 1e3:.1f} | {r['batch'] / ev:,.0f}" if ev else "- | -"
         lines.append(f"| {r['solver']} | {r['devices']} | {r['batch']} | {r['compile_s']:.1f} | "
                      f"{r['median_s'] * 1e3:.1f} | {r['min_s'] * 1e3:.1f} | {r['batch'] / r['median_s']:,.0f} | "
-                     f"{r['lp_ok']:.3f} |")
+                     f"{ev_cells} | {r['lp_ok']:.3f} |")
     for b in sorted({r["batch"] for r in report["rows"] if r["devices"] > 1}):
         rows = {r["devices"]: r for r in report["rows"] if r["batch"] == b and r["solver"] == "jax"}
         if 1 in rows and len(rows) > 1:
@@ -178,10 +205,15 @@ def markdown(report: dict) -> str:
                           f"as fast as one."]
     if report.get("whole"):
         w = report["whole"]
-        lines += ["", f"Whole call, {p['object']} seen for the first time to {w['batch']} ranked grasps (`synthesize`, "
-                      "compiled beforehand, jax LP): " + f"**{w['total_s'] * 1e3:.0f} ms**: the Gradient-SDF build "
-                      f"{w['sdf_s'] * 1e3:.0f} ms, the device part {w['synthesis_s'] * 1e3:.0f} ms, the host "
-                      f"evaluation {w['evaluation_s'] * 1e3:.0f} ms."]
+        lines += ["", f"Whole call, `{w.get('object', p['object'])}` ({w['faces']} faces) to {w['batch']} ranked "
+                      "grasps (`synthesize` and the ranking, compiled beforehand, jax LP; median ms):", "",
+                  "| grid | total | SDF build | device part | evaluation and copy back | wall |",
+                  "|---|---|---|---|---|---|"]
+        for kind, label in (("first", "mesh seen for the first time"), ("cached", "grid cached")):
+            if kind in w:
+                t = {k: v * 1e3 for k, v in w[kind].items()}
+                lines.append(f"| {label} | **{t['total_s']:.1f}** | {t['sdf_s']:.1f} | {t['synthesis_s']:.1f} | "
+                             f"{t['evaluation_s']:.1f} | {t['wall_s']:.1f} |")
     if report.get("cli"):
         c = report["cli"]
         lines += ["", f"CLI start, `ffcgs grasp {p['object']} --n 32 --iters {p['iters']}` in a fresh process:", "",
@@ -233,10 +265,13 @@ def run(cmd, progress=_print) -> dict:
     counts = cmd.devices or ((1, n_local) if n_local > 1 else (1,))
     if max(counts) > n_local:
         raise FfcgsError(f"--devices {max(counts)} asked for, but this machine has {n_local} {backend} device(s)")
+    from ffcgs_jax.evaluation import device_metrics
+
     hand = K.load_hand("svh")
     mesh = mesh_io.load_mesh(cmd.object)
     grid = sdf.build_sdf(mesh, SDFConfig(res=cmd.res))
     target = make_target(grid)
+    surface = device_metrics.mesh_table(mesh)
     rows = []
     for solver in cmd.lp_solvers:
         for b in batches:
@@ -245,17 +280,22 @@ def run(cmd, progress=_print) -> dict:
             for d in counts if solver == "jax" else (1,):  # the host LP does not scale with devices
                 cfg = GraspConfig(n=b, sampler=cmd.sampler, devices=d, sdf=SDFConfig(res=cmd.res),
                                   energy=EnergyConfig(lp_solver=solver), optim=OptimConfig(iters=cmd.iters))
-                row = time_synthesis(hand, target, cfg, cmd.repeats)
+                row = time_synthesis(hand, target, cfg, cmd.repeats, surface if solver == "jax" else None)
                 rows.append(dataclasses.asdict(row))
+                ev = f"  with evaluation {row.batch / row.with_eval_s:10,.0f} grasps/s" if row.with_eval_s else ""
                 progress(f"{solver:>9} LP  B = {b:>6}  devices {d}:  compile {row.compile_s:6.1f} s  "
-                         f"median {row.median_s * 1e3:9.1f} ms  {row.rate:10,.0f} grasps/s")
+                         f"median {row.median_s * 1e3:9.1f} ms  {row.rate:10,.0f} grasps/s{ev}")
     whole = None
     if "jax" in cmd.lp_solvers:
         cfg = GraspConfig(n=min(batches), sampler=cmd.sampler, devices=1, sdf=SDFConfig(res=cmd.res),
                           optim=OptimConfig(iters=cmd.iters))  # the latency row's executable (32 by default)
-        whole = time_whole_call(hand, mesh, cfg, cmd.repeats)
-        progress(f"whole call, B = {cfg.n}: {whole['total_s'] * 1e3:.0f} ms (SDF {whole['sdf_s'] * 1e3:.0f}, device "
-                 f"{whole['synthesis_s'] * 1e3:.0f}, evaluation {whole['evaluation_s'] * 1e3:.0f})")
+        whole_mesh = mesh_io.load_mesh(cmd.whole_object) if cmd.whole_object else mesh
+        whole = {"object": Path(cmd.whole_object).name if cmd.whole_object else cmd.object,
+                 **time_whole_call(hand, whole_mesh, cfg, cmd.repeats)}
+        for kind in ("first", "cached"):
+            t = {k: v * 1e3 for k, v in whole[kind].items()}
+            progress(f"whole call ({kind}), B = {cfg.n}: {t['total_s']:.1f} ms (SDF {t['sdf_s']:.1f}, device "
+                     f"{t['synthesis_s']:.1f}, evaluation {t['evaluation_s']:.1f})")
     cli = None
     if cmd.cli_start:
         progress("CLI start: cold and warm `ffcgs grasp` ...")

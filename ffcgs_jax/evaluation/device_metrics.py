@@ -24,7 +24,6 @@ same figures for every grasp at once, on the device that ran the synthesis, and 
 
 import collections
 import functools
-import hashlib
 import time
 from typing import NamedTuple
 
@@ -45,9 +44,10 @@ EPS_KEEP = 12  # of which the lowest start a facet walk
 EPS_WALK = 5  # steps of each walk (walks measured converged within 6)
 _MAX_PIVOTS = 64  # per simplex phase; the 6-row LPs here take about 10
 _PIVOTS_PER_REFRESH = 4
+_EXACT = jax.lax.Precision.HIGHEST
 _BLAND_AFTER = 8
 _POINT_CHUNK = 4096  # fingertip points per brute-force pass (bounds the (points, triangles) work in flight)
-_MIN_FACES = 256  # the smallest triangle bucket: tables are padded to a power of two >= this
+_MIN_FACES = 256  # the smallest triangle bucket (see `_build_table` for the others)
 Host = Array | np.ndarray
 
 
@@ -75,24 +75,17 @@ class MeshTable(NamedTuple):
     orient: Float[Array, ""]
 
 
-def mesh_key(mesh: trimesh.Trimesh) -> str:
-    """sha256 of the mesh's float64 vertices and int64 faces: the same geometry gives the same key."""
-    h = hashlib.sha256(np.ascontiguousarray(mesh.vertices, np.float64).tobytes())
-    h.update(np.ascontiguousarray(mesh.faces, np.int64).tobytes())
-    return h.hexdigest()
-
-
 _TABLES: collections.OrderedDict = collections.OrderedDict()
 _TABLES_MAX = 16
 
 
 def mesh_table(mesh: trimesh.Trimesh, dtype=None) -> MeshTable:
-    """The `MeshTable` of `mesh` on the default device, cached per `mesh_key` and dtype (16 meshes, least recently
+    """The `MeshTable` of `mesh` on the default device, cached per `sdf.mesh_hash` and dtype (16 meshes, least recently
     used dropped), so repeated calls on one object build it once."""
     if not isinstance(mesh, trimesh.Trimesh) or len(mesh.faces) == 0:
         raise FfcgsError(f"device evaluation needs a triangle mesh with faces, got {type(mesh).__name__}")
     dtype = jnp.asarray(0.0).dtype if dtype is None else np.dtype(dtype)
-    key = (mesh_key(mesh), str(dtype))
+    key = (sdf_mod.mesh_hash(np.asarray(mesh.vertices, np.float64), np.asarray(mesh.faces, np.int64)), str(dtype))
     if key in _TABLES:
         _TABLES.move_to_end(key)
         return _TABLES[key]
@@ -125,11 +118,13 @@ def _build_table(mesh: trimesh.Trimesh, dtype) -> MeshTable:
     for k in range(3):
         np.add.at(vsum, faces[:, k], fn)
     edges = np.sort(np.stack([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]], 1).reshape(-1, 2), axis=1)
-    _, inv = np.unique(edges, axis=0, return_inverse=True)
+    _, inv = np.unique(edges[:, 0] * len(verts) + edges[:, 1], return_inverse=True)  # one integer per edge: fast
     esum = np.zeros((inv.max() + 1, 3))
     np.add.at(esum, inv.ravel(), np.repeat(fn, 3, axis=0))
     f = len(faces)
-    f_pad = max(_MIN_FACES, 1 << (f - 1).bit_length())
+    # a power of two up to 1024, then multiples of 1024: 3,000 faces pad to 3,072, not 4,096 (the brute force's
+    # work is linear in the padded count)
+    f_pad = max(_MIN_FACES, 1 << (f - 1).bit_length()) if f <= 1024 else -(-f // 1024) * 1024
     pad = f_pad - f
 
     def padded(x, fill):
@@ -275,7 +270,8 @@ def _simplex(W, s, d, phase: int, basis, Binv, max_iter: int):
                 it + jnp.where(stop, 0, 1), jnp.where(best <= tol, degenerate + 1, 0), stop)
 
     def trip(state):
-        for _ in range(_PIVOTS_PER_REFRESH):
+        # each trip ends in a loop-condition check (a device-to-host sync on a GPU): more pivots per trip there
+        for _ in range(_PIVOTS_PER_REFRESH if jax.default_backend() == "cpu" else 2 * _PIVOTS_PER_REFRESH):
             state = pivot(state)
         basis, Binv, it, degenerate, done = state
         fresh, smallest = lp_jax.inverse(matrix(basis))
@@ -307,7 +303,8 @@ def search_epsilon(W: Float[Array, "6 N"], starts: Float[Array, "M 6"]) -> Float
     """min over searched unit directions u of h(u) = max_j u . w_j: an upper bound of the signed Ferrari-Canny
     epsilon, exact where the walk reaches the nearest facet (see the module docstring). Meaningful when the
     origin is inside the hull (force closure); otherwise only its sign is."""
-    h0 = jnp.max(starts @ W, axis=1)
+    # full float32 products: a GPU's default (TF32-like) precision errs by ~1e-3, a tenth of a typical epsilon
+    h0 = jnp.max(jnp.matmul(starts, W, precision=_EXACT), axis=1)
     dirs = starts[jax.lax.top_k(-h0, EPS_KEEP)[1]]
     best = jnp.min(h0)
 
@@ -315,7 +312,8 @@ def search_epsilon(W: Float[Array, "6 N"], starts: Float[Array, "M 6"]) -> Float
         step, dirs, best, _ = carry
         new = jax.vmap(ray_facet, (None, 0))(W, dirs)
         moved = jnp.any(jnp.abs(new - dirs) > 1e-6)
-        return step + 1, new, jnp.minimum(best, jnp.min(jnp.max(new @ W, axis=1))), moved
+        h = jnp.max(jnp.matmul(new, W, precision=_EXACT), axis=1)
+        return step + 1, new, jnp.minimum(best, jnp.min(h)), moved
 
     # a walk that returns the facet it started from has ended (the origin's foot point lies in that facet)
     carry = (jnp.zeros((), jnp.int32), dirs, best, jnp.ones((), bool))

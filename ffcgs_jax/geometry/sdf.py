@@ -1,4 +1,4 @@
-"""Gradient-SDF of a triangle mesh: built exactly on the host, queried in pure JAX.
+"""Gradient-SDF of a triangle mesh: built exactly, queried in pure JAX.
 
 A `GradientSDF` is a cubic voxel grid whose four channels hold, at each voxel centre, the signed distance to the
 mesh (metres, negative inside) and its gradient (the outward unit vector from the closest surface point).
@@ -7,10 +7,14 @@ mesh (metres, negative inside) and its gradient (the outward unit vector from th
 up to half a voxel) and the gradient channels themselves; `distance` is the same value with the interpolated
 gradient channel as its derivative (the Gradient-SDF idea).
 
-Building (`build_sdf`) is host work: this module picks the grid and checks the mesh; `sdf_build` computes the
-exact distances, their winding-number sign and the gradient channels (its docstring describes the three steps).
+Building (`build_sdf`): this module checks the mesh, picks the grid and keeps recent grids; `sdf_device` computes
+the exact distances, their winding-number sign and the gradient channels in one jitted function on the default
+JAX device. `sdf_build` does the same on the host: the reference of the tests and benchmarks (its docstring defines
+the three steps).
 """
 
+import collections
+import hashlib
 import pathlib
 from typing import NamedTuple
 
@@ -22,8 +26,8 @@ from jax.custom_derivatives import SymbolicZero
 
 from ffcgs_jax import files
 from ffcgs_jax.errors import FfcgsError
+from ffcgs_jax.geometry import sdf_build, sdf_device
 from ffcgs_jax.geometry.config import SDFConfig
-from ffcgs_jax.geometry.sdf_build import signed_distance_grid
 from ffcgs_jax.types import Array, Float
 
 _FORMAT_VERSION = 1
@@ -51,7 +55,7 @@ class GradientSDF(NamedTuple):
 
 
 # ----------------------------------------------------------------------------------------------------------------
-# Host build
+# Build
 # ----------------------------------------------------------------------------------------------------------------
 
 
@@ -71,38 +75,91 @@ def _grid_frame(bounds: np.ndarray, cfg: SDFConfig) -> tuple[np.ndarray, float]:
     return (lo + hi) / 2.0 - side / 2.0, voxel
 
 
-def build_sdf(mesh: trimesh.Trimesh, cfg: SDFConfig = SDFConfig(), table_z: float | None = None) -> GradientSDF:
-    """Build the Gradient-SDF of `mesh` on a cfg.res^3 cube grid (host side, exact distances).
+_CACHE_SIZE = 16  # grids kept by `build_sdf`
+_CACHE_BYTES = 1 << 29  # and at most 512 MB of them (a 32^3 grid is 1 MB in float64, a 128^3 one 67 MB)
+_cache: collections.OrderedDict = collections.OrderedDict()  # key -> GradientSDF, least recently used first
+_BUILDERS = ("device", "host")
+
+
+def build_sdf(
+    mesh: trimesh.Trimesh,
+    cfg: SDFConfig = SDFConfig(),
+    table_z: float | None = None,
+    *,
+    builder: str = "device",
+    cache: bool = True,
+) -> GradientSDF:
+    """Build the Gradient-SDF of `mesh` on a cfg.res^3 cube grid (exact distances).
 
     The cube is centred on the mesh's bounding-box centre; its side is the largest extent L plus, on each side, a
     margin of max(cfg.margin * L, cfg.min_margin) metres, so fingertips approaching from outside stay on the grid.
     Outside the cube `query` extends the field (see there).
 
+    Grids are kept per process (the last 16 and at most 512 MB, least recently used dropped first), keyed by a
+    SHA-256 of the vertices (float64) and faces (int64), cfg.res, cfg.margin, cfg.min_margin, table_z, the builder
+    and JAX's default float dtype: a repeated call returns the same GradientSDF at once. Its leaves are immutable
+    JAX arrays, so sharing it is safe. `cache=False` builds anew (and keeps nothing); `clear_cache()` empties the
+    cache.
+
     Args:
         mesh: triangle mesh in metres (see `mesh_io.load_mesh`); need not be watertight.
         cfg: grid resolution and margins (cfg.scale is applied when loading, by `mesh_io.load_mesh`).
         table_z: height of the table plane; default the mesh's lowest z (the object rests on the table).
+        builder: "device" (`sdf_device`: one jitted function on the default JAX device, GPU or CPU) or "host"
+            (`sdf_build`: the host reference, for tests and benchmarks). Both give the same grid up to float32
+            rounding of the nearest-triangle search (~1e-8 m).
+        cache: look the grid up in, and add it to, the per-process cache.
 
     Returns:
         The GradientSDF, arrays in JAX's default float dtype.
     """
     cfg.check()
+    if builder not in _BUILDERS:
+        raise FfcgsError(f"build_sdf: unknown builder {builder!r}; valid: {', '.join(_BUILDERS)}")
     verts = np.asarray(mesh.vertices, np.float64)
     faces = np.asarray(mesh.faces, np.int64)
     if faces.ndim != 2 or faces.shape[0] == 0 or faces.shape[1] != 3:
         raise FfcgsError(f"build_sdf needs a triangle mesh with faces, got faces of shape {faces.shape}")
+    if faces.min() < 0 or faces.max() >= len(verts):
+        raise FfcgsError(f"build_sdf: faces index vertices 0..{faces.max()}, but the mesh has {len(verts)} vertices")
     if not np.isfinite(verts).all():
         raise FfcgsError("build_sdf: mesh vertices contain NaN or inf")
+    if table_z is not None and not np.isfinite(table_z):
+        raise FfcgsError(f"table_z must be finite, got {table_z}")
+    key = (mesh_hash(verts, faces), cfg.res, cfg.margin, cfg.min_margin,
+           None if table_z is None else float(table_z), builder, jnp.result_type(float).name)
+    if cache and key in _cache:
+        _cache.move_to_end(key)
+        return _cache[key]
     flat = verts[faces].reshape(-1, 3)
     origin, voxel = _grid_frame(np.stack([flat.min(0), flat.max(0)]), cfg)
-    dist, grad = signed_distance_grid(verts, faces, origin, voxel, cfg.res)
-    grid = np.concatenate([dist[..., None], grad], axis=-1)
+    if builder == "device":
+        grid = sdf_device.gradient_grid(verts, faces, origin, voxel, cfg.res)
+    else:
+        dist, grad = sdf_build.signed_distance_grid(verts, faces, origin, voxel, cfg.res)
+        grid = jnp.asarray(np.concatenate([dist[..., None], grad], axis=-1))
     tz = float(flat[:, 2].min()) if table_z is None else float(table_z)
-    if not np.isfinite(tz):
-        raise FfcgsError(f"table_z must be finite, got {table_z}")
-    return GradientSDF(
-        grid=jnp.asarray(grid), origin=jnp.asarray(origin), voxel_size=jnp.asarray(voxel), table_z=jnp.asarray(tz)
-    )
+    out = GradientSDF(grid=grid, origin=jnp.asarray(origin), voxel_size=jnp.asarray(voxel), table_z=jnp.asarray(tz))
+    if cache:
+        _cache[key] = out
+        while len(_cache) > _CACHE_SIZE or sum(g.grid.nbytes for g in _cache.values()) > _CACHE_BYTES:
+            _cache.popitem(last=False)
+    return out
+
+
+def clear_cache() -> None:
+    """Forget the grids `build_sdf` keeps (after this, each mesh is built again)."""
+    _cache.clear()
+
+
+def mesh_hash(verts: np.ndarray, faces: np.ndarray) -> str:
+    """SHA-256 of a mesh's float64 vertices and int64 faces (shapes included): the key of the caches of grids
+    here and of triangle tables in `evaluation.device_metrics`."""
+    h = hashlib.sha256()
+    for a in (verts, faces):
+        h.update(str(a.shape).encode())
+        h.update(np.ascontiguousarray(a).tobytes())
+    return h.hexdigest()
 
 
 # ----------------------------------------------------------------------------------------------------------------

@@ -102,13 +102,17 @@ _COMPILED: dict = {}
 def _compiled(hand: Hand, target: Target, key: jax.Array, given, dcfg: DeviceConfig, n: int, given_q=None,
               sampler_params=None, sampler_res=None, mesh=None):
     """Ahead-of-time compiled device part, cached like jit's own cache (AOT compiles bypass that cache), so that
-    compile time can be reported apart and a second object of the same grid size reuses the executable."""
+    compile time can be reported apart and a second object of the same grid size reuses the executable. A new
+    executable is checked against the device's free memory once, when compiled (`memory.check_fits` reads its
+    memory analysis, about 0.1 s: too slow for every call)."""
     shapes = jax.tree.map(lambda x: (x.shape, x.dtype), (target, key, given, given_q, sampler_params))
     k = (hand.spec, dcfg, n, str(shapes), sampler_res, jax.default_backend(), mesh)
     if k not in _COMPILED:
-        _COMPILED[k] = _device_jit.lower(hand, target, key, given, cfg=dcfg, n=n, given_q=given_q,
-                                         sampler_params=sampler_params, sampler_res=sampler_res,
-                                         mesh=mesh).compile()
+        compiled = _device_jit.lower(hand, target, key, given, cfg=dcfg, n=n, given_q=given_q,
+                                     sampler_params=sampler_params, sampler_res=sampler_res, mesh=mesh).compile()
+        # before anything is allocated: no out-of-memory traceback
+        memory.check_fits(compiled, n, (mesh.devices.flat[0] if mesh is not None else jax.devices()[0]))
+        _COMPILED[k] = compiled
     return _COMPILED[k]
 
 
@@ -196,7 +200,6 @@ def compile_device(hand: Hand, target: Target, cfg: GraspConfig, given: jax.Arra
     key0 = jax.random.PRNGKey(0)
     t0 = time.perf_counter()
     compiled = _compiled(hand, target, key0, given, dcfg, n, given_q, params, res, mesh)
-    memory.check_fits(compiled, n, mesh.devices.flat[0])  # before anything is allocated: no out-of-memory traceback
     return (lambda key: compiled(hand, target, key, given, given_q=given_q, sampler_params=params)), \
         time.perf_counter() - t0
 
@@ -224,8 +227,7 @@ def _finish(hand, mesh, target, cfg, out: DeviceOut, synthesis_s, compile_s, obj
              & (ev["n_contacts"] == contacts.shape[1]) & ev["force_closure"])
     touching = np.abs(ev["contact_dist"]) <= cfg.contact_tol
     squeeze_dir = metrics.squeeze_direction(np.asarray(out.tip_jac), ev["normals"], touching)
-    m = hand.spec.mj_model()
-    joint_names = np.array([mujoco.mj_id2name(m, mujoco.mjtObj.mjOBJ_JOINT, j) for j in range(m.njnt)])
+    joint_names = _joint_names(hand.spec)
     arrays = {
         "wrist_pose": K.orthonormalize(np.asarray(out.poses, np.float64)),
         "q": q,
@@ -262,6 +264,12 @@ def _finish(hand, mesh, target, cfg, out: DeviceOut, synthesis_s, compile_s, obj
     arrays["evaluation_s"] = np.asarray(time.perf_counter() - t0 - eval_compile_s, np.float64)  # the copy included
     trace = {k: np.asarray(getattr(opt.trace, k), np.float64) for k in ("E", "E_g", "E_c")}
     return GraspSet(arrays, trace, cfg, object_name)
+
+
+@functools.lru_cache(maxsize=8)
+def _joint_names(spec) -> np.ndarray:
+    m = spec.mj_model()  # parses the MJCF: once per hand, not per call
+    return np.array([mujoco.mj_id2name(m, mujoco.mjtObj.mjOBJ_JOINT, j) for j in range(m.njnt)])
 
 
 def _metrics_config(cfg: GraspConfig) -> metrics.MetricsConfig:

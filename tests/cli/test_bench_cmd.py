@@ -19,13 +19,18 @@ def test_bench_command_measures_and_writes_its_block(tmp_path, capsys):
     (row,) = report["rows"]
     assert (row["solver"], row["batch"], row["devices"]) == ("jax", 4, 1)
     assert 0 < row["min_s"] <= row["median_s"] and row["compile_s"] > 0 and 0 <= row["lp_ok"] <= 1
+    assert row["with_eval_s"] > 0  # the device part and its evaluation (the evaluation alone is tiny at B = 4)
     assert report["machine"]["backend"] == "cpu" and report["machine"]["versions"]["jax"] != "-"
     assert report["cli"] is None
     w = report["whole"]  # the whole call, in parts: each part took time and the total holds them
-    assert w["batch"] == 4 and min(w["sdf_s"], w["synthesis_s"], w["evaluation_s"]) > 0
-    assert w["total_s"] >= 0.95 * (w["sdf_s"] + w["synthesis_s"] + w["evaluation_s"])  # medians of each
+    assert (w["batch"], w["faces"], w["object"]) == (4, 12, "box")
+    for kind in ("first", "cached"):
+        t = w[kind]
+        assert min(t["synthesis_s"], t["evaluation_s"]) > 0 and t["wall_s"] >= 0.95 * t["total_s"]
+        assert t["total_s"] >= 0.95 * (t["sdf_s"] + t["synthesis_s"] + t["evaluation_s"])  # medians of each
+    assert w["cached"]["sdf_s"] < w["first"]["sdf_s"]  # the grid came from the cache
     text = results.read_text()
-    assert "Whole call, box seen for the first time to 4 ranked grasps" in text
+    assert "Whole call, `box` (12 faces) to 4 ranked" in text and "| grid cached |" in text
     assert text.startswith("# Benchmark results\n\nEarlier sections stay.\n")
     key = benchmark.machine_key(report["machine"])
     assert text.count(f"<!-- ffcgs bench: {key} -->") == 1
