@@ -47,7 +47,8 @@ _PIVOTS_PER_REFRESH = 4
 _EXACT = jax.lax.Precision.HIGHEST
 _BLAND_AFTER = 8
 _POINT_CHUNK = 4096  # fingertip points per brute-force pass (bounds the (points, triangles) work in flight)
-_MIN_FACES = 256  # the smallest triangle bucket (see `_build_table` for the others)
+_MIN_FACES = 1024  # the smallest triangle bucket (see `_bucket`): tiny meshes share one executable
+_MIN_GRASPS = 32  # the smallest batch bucket: smaller batches are padded to it (see `_bucket`)
 Host = Array | np.ndarray
 
 
@@ -96,6 +97,13 @@ def mesh_table(mesh: trimesh.Trimesh, dtype=None) -> MeshTable:
     return table
 
 
+def _bucket(n: int, least: int) -> int:
+    """n padded up to a power of two >= `least` up to 1024, then to multiples of 1024: few sizes, so few
+    executables (each costs hundreds of memory mappings on a CPU, and a process has 65,530: a test process ran out),
+    and at most 1023 rows of padding past 1024 (3,000 faces pad to 3,072, not 4,096)."""
+    return max(least, 1 << (n - 1).bit_length()) if n <= 1024 else -(-n // 1024) * 1024
+
+
 def clear_cache() -> None:
     """Forget the cached triangle tables (`mesh_table` builds the next one anew)."""
     _TABLES.clear()
@@ -122,9 +130,7 @@ def _build_table(mesh: trimesh.Trimesh, dtype) -> MeshTable:
     esum = np.zeros((inv.max() + 1, 3))
     np.add.at(esum, inv.ravel(), np.repeat(fn, 3, axis=0))
     f = len(faces)
-    # a power of two up to 1024, then multiples of 1024: 3,000 faces pad to 3,072, not 4,096 (the brute force's
-    # work is linear in the padded count)
-    f_pad = max(_MIN_FACES, 1 << (f - 1).bit_length()) if f <= 1024 else -(-f // 1024) * 1024
+    f_pad = _bucket(f, _MIN_FACES)
     pad = f_pad - f
 
     def padded(x, fill):
@@ -270,9 +276,15 @@ def _simplex(W, s, d, phase: int, basis, Binv, max_iter: int):
                 it + jnp.where(stop, 0, 1), jnp.where(best <= tol, degenerate + 1, 0), stop)
 
     def trip(state):
-        # each trip ends in a loop-condition check (a device-to-host sync on a GPU): more pivots per trip there
-        for _ in range(_PIVOTS_PER_REFRESH if jax.default_backend() == "cpu" else 2 * _PIVOTS_PER_REFRESH):
-            state = pivot(state)
+        # Each trip ends in a loop-condition check, a device-to-host sync on a GPU: there the pivots of a trip are
+        # unrolled, twice as many. On a CPU a loop keeps one copy of the pivot: every kernel of an executable is
+        # its own memory mapping there, and unrolled copies of a whole evaluation ran a long test process out of
+        # mappings (vm.max_map_count) after a few dozen executables.
+        if jax.default_backend() == "cpu":
+            state = jax.lax.fori_loop(0, _PIVOTS_PER_REFRESH, lambda _, st: pivot(st), state)
+        else:
+            for _ in range(2 * _PIVOTS_PER_REFRESH):
+                state = pivot(state)
         basis, Binv, it, degenerate, done = state
         fresh, smallest = lp_jax.inverse(matrix(basis))
         return basis, jnp.where(smallest > 0, fresh, Binv), it, degenerate, done
@@ -419,11 +431,17 @@ def compile_evaluate(surface, contacts, q, lower, upper, centre, radius, cfg: Me
                          f"{q.shape}")
     dt = contacts.dtype
     cast = lambda x: jnp.asarray(x, dt)  # noqa: E731
-    args = (jax.tree.map(cast, surface), contacts, cast(q), cast(lower), cast(upper), cast(centre), cast(radius))
+    b = contacts.shape[0]
+    pad = _bucket(b, _MIN_GRASPS) - b  # rows repeating the last grasp, dropped from the results
+    rows = lambda x: jnp.concatenate([x, jnp.repeat(x[-1:], pad, axis=0)]) if pad else x  # noqa: E731
+    args = (jax.tree.map(cast, surface), rows(contacts), rows(cast(q)), cast(lower), cast(upper), cast(centre),
+            cast(radius))
     key = (str(jax.tree.map(_signature, args)), type(surface).__name__, cfg, jax.default_backend())
     t0 = time.perf_counter()
     if key not in _COMPILED:
         _COMPILED[key] = _evaluate_jit.lower(*args, cfg=cfg).compile()
     compiled = _COMPILED[key]
+    if pad:
+        return (lambda: {k: v[:b] for k, v in compiled(*args).items()}), time.perf_counter() - t0
     return (lambda: compiled(*args)), time.perf_counter() - t0
 
