@@ -10,3 +10,33 @@ import jax
 os.environ.setdefault("FFCGS_JAX_CACHE", "off")
 jax.config.update("jax_enable_x64", True)
 jax.config.update("jax_numpy_rank_promotion", "raise")
+
+
+import pytest  # noqa: E402
+
+MAPS_LIMIT = 45_000  # of the kernel's 65,530 per process (vm.max_map_count)
+
+
+def _maps() -> int:
+    try:
+        with open(f"/proc/{os.getpid()}/maps") as f:
+            return sum(1 for _ in f)
+    except OSError:  # not Linux
+        return 0
+
+
+@pytest.fixture(autouse=True, scope="module")
+def _release_executables():
+    """Drop compiled executables between test modules once the process holds many memory mappings.
+
+    On a CPU every kernel of an XLA executable is a mapping of its own; the whole suite in one process compiles
+    enough (SDF builds, evaluations, descents) to pass the kernel's limit, and XLA's compiler then segfaults. A
+    module-scoped check keeps the executables that tests of one module share."""
+    yield
+    if _maps() > MAPS_LIMIT:
+        from ffcgs_jax.evaluation import device_metrics
+        from ffcgs_jax.synthesis import grasp
+
+        grasp._COMPILED.clear()
+        device_metrics._COMPILED.clear()
+        jax.clear_caches()
