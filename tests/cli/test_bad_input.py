@@ -218,10 +218,11 @@ def _interrupted(argv: list[str], cwd: Path, after: float) -> subprocess.Complet
     # protocol v1's long phases: the default protocol may finish these grasps before the signal arrives
     (["eval", "many.npz", "--all", "--protocol", "both", "--timestep", "0.002", "--shake-cycles", "6",
       "--push-time", "2"], 5.0),
-    (["sdf", "mug", "--res", "128", "--out", "new/sdf.npz"], 5.0),
+    # no `ffcgs sdf` case: the device build of even a 128^3 grid ends within about 3 s, before a signal can be
+    # timed to land in it; the handler is main's, the same for every command
     (["dataset", "build", "--objects", "meshes", "--out", "new/d.mcap", "--per-object", "2", "--rotations", "1",
       "--planner.population", "64", "--planner.refine", "8"], 8.0),
-], ids=["grasp", "eval", "sdf", "dataset-build"])
+], ids=["grasp", "eval", "dataset-build"])
 def test_sigint_ends_with_one_line_and_no_partial_output(inputs, argv, after):
     before = {p: (inputs / p).read_bytes() for p in ("good.npz", "many.npz")}
     r = _interrupted(argv, inputs, after)

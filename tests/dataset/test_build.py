@@ -194,6 +194,7 @@ def test_killed_build_resumes_to_the_same_file(killed_run, main_build, objects_d
 # ----------------------------------------------------------------------------------------------------------------
 
 
+@pytest.mark.slow  # 47 s on two cores (two more builds)
 def test_deterministic_for_a_seed_and_different_across_seeds(tmp_path, main_build):
     one = tmp_path / "one"
     one.mkdir()

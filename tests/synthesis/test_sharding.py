@@ -53,6 +53,7 @@ SCRIPT = textwrap.dedent("""
 """)
 
 
+@pytest.mark.slow  # 74 s on two cores: a subprocess compiles the pipeline for two devices
 def test_two_devices_give_the_one_device_grasps():
     """3 poses over 2 devices (one padded): every output, trace included, equals the single-device run."""
     env = {**os.environ, "JAX_PLATFORMS": "cpu"}
