@@ -14,12 +14,13 @@ same figures for every grasp at once, on the device that ran the synthesis, and 
   LP `metrics.q_distance_reference` gives HiGHS. Fingertips that do not touch exert no force: their wrench rows
   are replaced by a touching fingertip's, which leaves the wrench hull, and so every figure, unchanged.
 - Ferrari-Canny epsilon: the minimum over unit wrench directions u of the support h(u) = max_j u . w_j (for a hull
-  holding the origin, the distance to its nearest facet). Searched from `EPS_STARTS` spread directions: the
-  `EPS_KEEP` lowest are refined by `quality.refine_directions`, then each is replaced by the normal of the
-  hyperplane through its six most supporting wrenches (a facet normal where the search ended in the facet's basin).
-  Every h(u) of a unit u bounds epsilon from above, so the result is never below Qhull's; bench/RESULTS.md gives how
-  close it comes ("End-to-end speed"). Force closure: a full-rank wrench set (as `metrics.epsilon_q1` asks), the
-  origin in the hull (E_g at most `_g_tol`) and the searched epsilon above `_eps_tol`.
+  holding the origin, the distance to its nearest facet), searched by facet walks (`search_epsilon`): from the
+  `EPS_KEEP` lowest of `EPS_STARTS` spread directions, each step shoots a ray from the origin along the current
+  direction (`ray_facet`, a 6-row LP) and moves to the normal of the facet the ray leaves through, which never
+  increases the facet's distance; a walk ends in a facet holding the origin's foot point. Every h(u) of a unit u
+  bounds epsilon from above, so the result is never below Qhull's; bench/RESULTS.md gives how close it comes
+  ("End-to-end speed"). Force closure: a full-rank wrench set (as `metrics.epsilon_q1` asks), the origin in the
+  hull (E_g at most `_eps_tol`'s bound) and the searched epsilon above its bound.
 """
 
 import collections
@@ -45,7 +46,6 @@ EPS_WALK = 5  # steps of each walk (walks measured converged within 6)
 _MAX_PIVOTS = 64  # per simplex phase; the 6-row LPs here take about 10
 _PIVOTS_PER_REFRESH = 4
 _EXACT = jax.lax.Precision.HIGHEST
-_BLAND_AFTER = 8
 _POINT_CHUNK = 4096  # fingertip points per brute-force pass (bounds the (points, triangles) work in flight)
 _MIN_FACES = 1024  # the smallest triangle bucket (see `_bucket`): tiny meshes share one executable
 _MIN_GRASPS = 32  # the smallest batch bucket: smaller batches are padded to it (see `_bucket`)
@@ -53,7 +53,7 @@ Host = Array | np.ndarray
 
 
 class MeshTable(NamedTuple):
-    """A triangle mesh as the device evaluation reads it (a pytree; rows padded to a power of two with degenerate
+    """A triangle mesh as the device evaluation reads it (a pytree; rows padded to a `_bucket` size with degenerate
     triangles 1 km away, never the closest and of zero solid angle).
 
     Attributes:
@@ -231,7 +231,7 @@ def _simplex(W, s, d, phase: int, basis, Binv, max_iter: int):
     """Pivots of the revised simplex on min c.x, [W | diag(s)] x = d, x >= 0 from a feasible `basis` with inverse
     `Binv`: phase 1 prices the 6 artificial columns diag(s) at 1 and the wrenches at 0, phase 2 the wrenches at 1,
     and there the artificials never enter; a basic one (left at level 0 by phase 1) leaves at the first pivot whose
-    column has a non-zero entry in its row. Dantzig's rule, Bland's after `_BLAND_AFTER` degenerate pivots, the
+    column has a non-zero entry in its row. Dantzig's rule, Bland's after `lp_jax._BLAND_AFTER` degenerate pivots, the
     inverse refreshed every `_PIVOTS_PER_REFRESH` (`lp_jax.inverse`).
 
     Written with one-hot selections, elementwise products and sums instead of gathers, scatters, matrix products
@@ -239,7 +239,7 @@ def _simplex(W, s, d, phase: int, basis, Binv, max_iter: int):
     products and LU factorisations are each a library call (`synthesis.lp_jax` says the same of its pivots)."""
     n = W.shape[1]
     dt = W.dtype
-    tol = 1e-9 if dt == jnp.float64 else 1e-5
+    tol = lp_jax._tol(dt)  # the Q-distance simplex's pivot tolerance: the same LPs' scale
     cols = jnp.arange(n + 6)
     cost = jnp.where(cols < n, 0.0 if phase == 1 else 1.0, 1.0 if phase == 1 else 0.0).astype(dt)
     enter_ok = jnp.ones(n + 6, bool) if phase == 1 else cols < n
@@ -261,7 +261,7 @@ def _simplex(W, s, d, phase: int, basis, Binv, max_iter: int):
         in_basis = jnp.any(basis[:, None] == cols[None, :], axis=0)
         r = jnp.where(in_basis | ~enter_ok, 0.0, cost - priced)
         neg = r < -tol
-        enter = jnp.where(degenerate >= _BLAND_AFTER, jnp.argmax(neg), jnp.argmin(r))
+        enter = jnp.where(degenerate >= lp_jax._BLAND_AFTER, jnp.argmax(neg), jnp.argmin(r))
         u = jnp.sum(Binv * column(enter)[None, :], axis=1)
         stuck = (basis >= n) & (phase == 2) & (jnp.abs(u) > tol)
         ratio = jnp.where(stuck, 0.0, jnp.where(u > tol, xB / jnp.where(u > tol, u, 1.0), jnp.inf))

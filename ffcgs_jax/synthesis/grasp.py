@@ -111,7 +111,7 @@ def _compiled(hand: Hand, target: Target, key: jax.Array, given, dcfg: DeviceCon
         compiled = _device_jit.lower(hand, target, key, given, cfg=dcfg, n=n, given_q=given_q,
                                      sampler_params=sampler_params, sampler_res=sampler_res, mesh=mesh).compile()
         # before anything is allocated: no out-of-memory traceback
-        memory.check_fits(compiled, n, (mesh.devices.flat[0] if mesh is not None else jax.devices()[0]))
+        memory.check_fits(compiled, n, mesh.devices.flat[0])
         _COMPILED[k] = compiled
     return _COMPILED[k]
 
