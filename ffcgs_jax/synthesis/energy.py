@@ -1,6 +1,7 @@
 """The grasp energy E(q) for one wrist pose: E_g + a_c E_c + a_q E_q (eq. 5, 12, 13 of the paper), + a_m E_m (the
 force-closure margin, `quality.support_margin`) + a_pen P (the whole-hand penetration penalty)."""
 
+import collections
 from typing import NamedTuple
 
 import jax
@@ -45,11 +46,25 @@ class Terms(NamedTuple):
     margin_dirs: Float[Array, "M 6"]  # the margin's searched directions: the next step's start
 
 
+_TARGETS: "collections.OrderedDict[int, tuple[sdf.GradientSDF, Target]]" = collections.OrderedDict()
+
+
 def make_target(grid: sdf.GradientSDF) -> Target:
-    """Target with centre and radius read off the SDF (host side), and the SDF's cell table for fast queries."""
-    ext = sdf.object_extent(grid)
-    dtype = grid.grid.dtype
-    return Target(sdf.with_cells(grid), jnp.asarray(ext.centre, dtype), jnp.asarray(ext.radius, dtype))
+    """Target with centre and radius read off the SDF (on the device), and the SDF's cell table for fast queries.
+
+    Targets are kept per grid object (`sdf.build_sdf` returns the cached grid itself for a mesh it has seen), so a
+    repeated call on one object builds neither again: the last 8, and at most 512 MB of cell tables (262 MB each at
+    128^3), least recently used dropped first."""
+    hit = _TARGETS.get(id(grid))
+    if hit is not None and hit[0] is grid:  # the grid is held, so its id cannot have been reused
+        _TARGETS.move_to_end(id(grid))
+        return hit[1]
+    centre, radius = sdf.object_centre_radius(grid)
+    target = Target(sdf.with_cells(grid), centre, radius)
+    _TARGETS[id(grid)] = (grid, target)
+    while len(_TARGETS) > 8 or (len(_TARGETS) > 1 and sum(t.sdf.cells.nbytes for _, t in _TARGETS.values()) > 2**29):
+        _TARGETS.popitem(last=False)
+    return target
 
 
 def contact_energy(d: Float[Array, " C"], d0: float) -> Float[Array, ""]:

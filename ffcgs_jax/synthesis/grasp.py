@@ -26,7 +26,7 @@ from ffcgs_jax.geometry import sdf as sdf_mod
 from ffcgs_jax.hand import kinematics as K
 from ffcgs_jax.hand.kinematics import Hand
 from ffcgs_jax.synthesis import filters as F
-from ffcgs_jax.synthesis import memory, samplers, sharding
+from ffcgs_jax.synthesis import fetch, memory, samplers, sharding
 from ffcgs_jax.synthesis.config import EnergyConfig, GraspConfig, OptimConfig
 from ffcgs_jax.synthesis.energy import Target, chosen, fingertip_contacts, make_target
 from ffcgs_jax.synthesis.optimize import OptResult, _optimize
@@ -99,7 +99,7 @@ _device_jit = jax.jit(_device_part, static_argnames=("cfg", "n", "sampler_res", 
 _COMPILED: dict = {}
 
 
-def _compiled(hand: Hand, target: Target, key: jax.Array, given, dcfg: DeviceConfig, n: int, given_q=None,
+def _compiled(hand: Hand, target: Target, key: jax.ShapeDtypeStruct, given, dcfg: DeviceConfig, n: int, given_q=None,
               sampler_params=None, sampler_res=None, mesh=None):
     """Ahead-of-time compiled device part, cached like jit's own cache (AOT compiles bypass that cache), so that
     compile time can be reported apart and a second object of the same grid size reuses the executable. A new
@@ -175,9 +175,12 @@ def synthesize(hand: Hand, mesh: trimesh.Trimesh | sdf_mod.GradientSDF, cfg: Gra
         given_q = jnp.asarray(qa, target.sdf.grid.dtype)
     run, compile_s = compile_device(hand, target, cfg, given, given_q)
     t0 = time.perf_counter()
-    out = jax.block_until_ready(run(key))
-    synthesis_s = time.perf_counter() - t0
-    gs = _finish(hand, mesh, target, cfg, out, synthesis_s, compile_s, object_name)
+    out = run(key)
+    # the evaluation's host work (triangle table, executable lookup) while the device part runs
+    evaluate, eval_compile_s = _prepare_evaluation(hand, mesh, target, cfg, out)
+    out = jax.block_until_ready(out)
+    synthesis_s = time.perf_counter() - t0 - eval_compile_s
+    gs = _finish(hand, target, cfg, out, evaluate, synthesis_s, compile_s + eval_compile_s, object_name)
     gs.arrays["sdf_s"] = np.asarray(sdf_s, np.float64)
     gs.arrays["total_s"] = np.asarray(time.perf_counter() - start - float(gs["compile_s"]), np.float64)
     return gs
@@ -191,13 +194,12 @@ def compile_device(hand: Hand, target: Target, cfg: GraspConfig, given: jax.Arra
     dcfg = DeviceConfig(cfg.sampler if given is None else "given", cfg.sampling, cfg.energy, cfg.optim, cfg.filters)
     params, res = None, None
     if given is None:
-        params, res = samplers.sampler_params(cfg.sampler, hand, cfg.sampling)
-        params = jax.tree.map(lambda x: x.astype(target.sdf.grid.dtype), params)
+        params, res = samplers.sampler_params(cfg.sampler, hand, cfg.sampling, target.sdf.grid.dtype)
     mesh = device_mesh(cfg.devices)
     if mesh.size > 1:  # inputs committed to one device (the hand's, the SDF's) must be on all of the mesh's
         hand, target, given, given_q, params = jax.device_put((hand, target, given, given_q, params),
                                                               NamedSharding(mesh, P()))
-    key0 = jax.random.PRNGKey(0)
+    key0 = jax.ShapeDtypeStruct((2,), jnp.uint32)  # `jax.random.PRNGKey`'s: no device call per lookup
     t0 = time.perf_counter()
     compiled = _compiled(hand, target, key0, given, dcfg, n, given_q, params, res, mesh)
     return (lambda key: compiled(hand, target, key, given, given_q=given_q, sampler_params=params)), \
@@ -209,13 +211,16 @@ def _surface(mesh) -> device_metrics.MeshTable | sdf_mod.GradientSDF:
     return mesh if isinstance(mesh, sdf_mod.GradientSDF) else device_metrics.mesh_table(mesh)
 
 
-def _finish(hand, mesh, target, cfg, out: DeviceOut, synthesis_s, compile_s, object_name) -> GraspSet:
+def _prepare_evaluation(hand, mesh, target, cfg, out: DeviceOut):
+    """(`run()` of the device evaluation of `out`'s grasps, seconds spent compiling it); needs only `out`'s shapes,
+    so it may run before the device part ends."""
+    return device_metrics.compile_evaluate(_surface(mesh), out.opt.final.contacts, out.opt.q, hand.lower, hand.upper,
+                                           target.centre, target.radius, _metrics_config(cfg))
+
+
+def _finish(hand, target, cfg, out: DeviceOut, evaluate, synthesis_s, compile_s, object_name) -> GraspSet:
     t0 = time.perf_counter()
-    run, eval_compile_s = device_metrics.compile_evaluate(_surface(mesh), out.opt.final.contacts, out.opt.q,
-                                                          hand.lower, hand.upper, target.centre, target.radius,
-                                                          _metrics_config(cfg))
-    compile_s += eval_compile_s
-    out, ev = jax.device_get((out, run()))  # the one device-to-host copy of the call
+    out, ev = fetch.device_get((out, evaluate()))  # the one device-to-host copy of the call (one per dtype)
     opt = out.opt
     q = np.asarray(opt.q, np.float64)
     contacts = np.asarray(opt.final.contacts, np.float64)
@@ -261,7 +266,7 @@ def _finish(hand, mesh, target, cfg, out: DeviceOut, synthesis_s, compile_s, obj
         "compile_s": np.asarray(compile_s, np.float64),
     }
     arrays["score"] = score.score(arrays)
-    arrays["evaluation_s"] = np.asarray(time.perf_counter() - t0 - eval_compile_s, np.float64)  # the copy included
+    arrays["evaluation_s"] = np.asarray(time.perf_counter() - t0, np.float64)  # the copy included
     trace = {k: np.asarray(getattr(opt.trace, k), np.float64) for k in ("E", "E_g", "E_c")}
     return GraspSet(arrays, trace, cfg, object_name)
 
@@ -287,7 +292,7 @@ def check_on_mesh(hand: Hand, mesh: trimesh.Trimesh, gs: GraspSet, grid: sdf_mod
     dtype = target.sdf.grid.dtype
     ev = device_metrics.evaluate(_surface(mesh), jnp.asarray(gs["contacts"], dtype), jnp.asarray(gs["q"], dtype),
                                  hand.lower, hand.upper, target.centre, target.radius, _metrics_config(gs.config))
-    ev = jax.device_get(ev)
+    ev = fetch.device_get(ev)
     return {f"{k}_true": np.asarray(ev[k]) for k in ("epsilon", "force_closure", "contact_dist", "n_contacts")}
 
 

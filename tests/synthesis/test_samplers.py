@@ -14,6 +14,7 @@ from ffcgs_jax.hand import kinematics as K
 from ffcgs_jax.hand import sites
 from ffcgs_jax.synthesis import filters as F
 from ffcgs_jax.synthesis import samplers as SM
+from ffcgs_jax.synthesis.energy import make_target
 
 RIGID_TOL = 1e-9  # float64 orthonormality of sampled rotations
 N = 32  # poses per call, as in the paper's Table I
@@ -116,6 +117,29 @@ def test_bounding_box_matches_object_extent(objects):
         lo, hi = SM.bounding_box(grid)
         np.testing.assert_allclose(lo, ext.lo, atol=1e-12)
         np.testing.assert_allclose(hi, ext.hi, atol=1e-12)
+
+
+def test_device_centre_radius_match_object_extent(objects):
+    box = objects["box"]
+    thin = box._replace(grid=box.grid.at[..., 0].set(jnp.abs(box.grid[..., 0]) + 1e-4))  # near-surface fallback
+    for grid in (*objects.values(), thin):
+        ext = S.object_extent(grid)
+        centre, radius = S.object_centre_radius(grid)
+        np.testing.assert_allclose(centre, ext.centre, atol=1e-12)
+        np.testing.assert_allclose(radius, ext.radius, rtol=1e-12)
+    empty = box._replace(grid=box.grid.at[..., 0].set(1.0))
+    with pytest.raises(FfcgsError, match="no voxel inside or on the object"):
+        S.object_centre_radius(empty)
+
+
+def test_make_target_is_kept_per_grid(objects):
+    a = make_target(objects["mug"])
+    assert make_target(objects["mug"]) is a
+    rebuilt = objects["mug"]._replace()  # equal values, another object: built anew, equal
+    b = make_target(rebuilt)
+    assert b is not a
+    for x, y in zip(jax.tree.leaves(a), jax.tree.leaves(b)):
+        np.testing.assert_array_equal(x, y)
 
 
 def test_random_palm_centres_fill_the_scaled_box(hand, samplers, objects):
