@@ -452,12 +452,18 @@ def per_object_table(report: dict) -> str:
     return "\n".join(lines) + "\n"
 
 
-def write_results(path: Path, block: str) -> None:
-    """Replace the text between the quality markers of `path`, or append the block to it."""
+def markers(hand: str = "svh") -> tuple[str, str]:
+    """The quality block's markers: one block per hand (the SVH's keeps the unnamed markers)."""
+    return (BEGIN, END) if hand == "svh" else (BEGIN.replace(" -->", f" {hand} -->"), END.replace(" -->", f" {hand} -->"))
+
+
+def write_results(path: Path, block: str, hand: str = "svh") -> None:
+    """Replace the text between `hand`'s quality markers in `path`, or append the block to it."""
     text = path.read_text() if path.exists() else ""
-    body = f"{BEGIN}\n{block.rstrip()}\n{END}"
-    if BEGIN in text and END in text and text.index(BEGIN) < text.index(END):
-        text = text[:text.index(BEGIN)] + body + text[text.index(END) + len(END):]
+    begin, end = markers(hand)
+    body = f"{begin}\n{block.rstrip()}\n{end}"
+    if begin in text and end in text and text.index(begin) < text.index(end):
+        text = text[:text.index(begin)] + body + text[text.index(end) + len(end):]
     else:
         text = (text.rstrip("\n") + "\n\n" if text.strip() else "") + body + "\n"
     files.write_text(path, text)
@@ -487,7 +493,7 @@ def main(argv: list[str] | None = None) -> int:
     if "total_s" in report["config"]:
         print(f"{len(report['records'])} jobs in {report['config']['total_s']:.0f} s")
     if args.results:
-        write_results(Path(args.results), head + "\n\n" + main_table)
+        write_results(Path(args.results), head + "\n\n" + main_table, report["config"].get("hand", "svh"))
     return 0
 
 

@@ -86,6 +86,11 @@ def test_results_block_is_replaced_not_duplicated(quality, tmp_path):
     assert text.count(quality.BEGIN) == 1 and text.count(quality.END) == 1
     assert "second" in text and "first" not in text
     assert text.startswith("# Results\n\nkept\n") and text.endswith("after\n")
+    quality.write_results(path, "allegro first", "allegro")  # another hand: a block of its own
+    quality.write_results(path, "allegro second", "allegro")
+    text = path.read_text()
+    assert "second" in text and "allegro second" in text and "allegro first" not in text
+    assert text.count(quality.markers("allegro")[0]) == 1
     assert list(tmp_path.iterdir()) == [path]  # no temp file left behind
 
 

@@ -136,14 +136,16 @@ def _git_commit() -> str:
         return "no git"
 
 
-def machine_key(m: dict) -> str:
-    """One line naming the machine: a RESULTS.md block per key, replaced when the bench runs there again."""
+def machine_key(m: dict, hand: str = "svh") -> str:
+    """One line naming the machine (and the hand, if not the SVH): a RESULTS.md block per key, replaced when the
+    bench runs there again."""
+    tail = "" if hand == "svh" else f" · hand {hand}"
     if m["backend"] == "cpu":
-        return f"cpu · {m['host_cpu']} · {m['host_cores']} cores"
-    return f"{m['backend']} · {m['device']} × {m['device_count']}"
+        return f"cpu · {m['host_cpu']} · {m['host_cores']} cores{tail}"
+    return f"{m['backend']} · {m['device']} × {m['device_count']}{tail}"
 
 
-def cli_start(obj: str, iters: int, backend: str, n: int = 32) -> dict:
+def cli_start(obj: str, iters: int, backend: str, n: int = 32, hand: str = "svh") -> dict:
     """Cold and warm `ffcgs grasp` in fresh processes sharing a new compilation cache; seconds."""
     out = {}
     with tempfile.TemporaryDirectory() as tmp:
@@ -153,7 +155,7 @@ def cli_start(obj: str, iters: int, backend: str, n: int = 32) -> dict:
         for kind in ("cold", "warm"):
             npz = Path(tmp) / f"{kind}.npz"
             cmd = [sys.executable, "-m", "ffcgs_jax.cli", "grasp", obj, "--n", str(n), "--iters", str(iters),
-                   "--out", str(npz)]
+                   "--hand", hand, "--out", str(npz)]
             t0 = time.perf_counter()
             r = subprocess.run(cmd, capture_output=True, text=True, env=env)
             wall = time.perf_counter() - t0
@@ -176,7 +178,7 @@ def markdown(report: dict) -> str:
     m, p = report["machine"], report["params"]
     v = m["versions"]
     lines = [
-        f"### {machine_key(m)}",
+        f"### {machine_key(m, p.get('hand', 'svh'))}",
         "",
         f"`{report['command']}`, {m['date']}. Host: {m['host_cpu']}, {m['host_cores']} cores. "
         + ", ".join(f"{k} {v[k]}" for k in v) + ".",
@@ -230,7 +232,7 @@ _SECTION = "## `ffcgs bench`: synthesis speed per machine"
 def write_results(path: str | Path, report: dict) -> None:
     """Put the report's block into RESULTS.md: replace the block of the same machine, or append it."""
     path = Path(path)
-    key = machine_key(report["machine"])
+    key = machine_key(report["machine"], report["params"].get("hand", "svh"))
     start, end = f"<!-- ffcgs bench: {key} -->", f"<!-- /ffcgs bench: {key} -->"
     block = f"{start}\n{markdown(report)}{end}\n"
     text = path.read_text() if path.exists() else "# Benchmark results\n"
@@ -255,6 +257,7 @@ def run(cmd, progress=_print) -> dict:
     from ffcgs_jax.geometry import mesh_io, sdf
     from ffcgs_jax.geometry.config import SDFConfig
     from ffcgs_jax.hand import kinematics as K
+    from ffcgs_jax.synthesis import grasp
     from ffcgs_jax.synthesis.config import EnergyConfig, GraspConfig, OptimConfig
     from ffcgs_jax.synthesis.energy import make_target
 
@@ -267,7 +270,7 @@ def run(cmd, progress=_print) -> dict:
         raise FfcgsError(f"--devices {max(counts)} asked for, but this machine has {n_local} {backend} device(s)")
     from ffcgs_jax.evaluation import device_metrics
 
-    hand = K.load_hand("svh")
+    hand = K.load_hand(cmd.hand)
     mesh = mesh_io.load_mesh(cmd.object)
     grid = sdf.build_sdf(mesh, SDFConfig(res=cmd.res))
     target = make_target(grid)
@@ -299,9 +302,10 @@ def run(cmd, progress=_print) -> dict:
     cli = None
     if cmd.cli_start:
         progress("CLI start: cold and warm `ffcgs grasp` ...")
-        cli = cli_start(cmd.object, cmd.iters, backend)
-    params = {"object": cmd.object, "res": int(grid.grid.shape[0]), "sampler": cmd.sampler, "iters": cmd.iters,
-              "repeats": cmd.repeats, "latency_batch": 32}
+        cli = cli_start(cmd.object, cmd.iters, backend, hand=cmd.hand)
+    sampler = grasp.for_hand(GraspConfig(sampler=cmd.sampler), hand).sampler
+    params = {"object": cmd.object, "res": int(grid.grid.shape[0]), "sampler": sampler, "iters": cmd.iters,
+              "repeats": cmd.repeats, "latency_batch": 32, "hand": cmd.hand}
     return {"command": command_line(cmd), "machine": machine(), "params": params, "rows": rows, "cli": cli,
             "whole": whole}
 

@@ -53,7 +53,8 @@ class HandCmd:
     """Pose the hand (optionally beside an object) and draw it to a PNG; print its fingertip contact points.
 
     Attributes:
-        q: channel values in hand-spec order (rad), e.g. 9 numbers for the SVH; default all 0 (open hand).
+        q: channel values in hand-spec order (rad), e.g. 9 numbers for the SVH, 16 for the Allegro; default: the
+            open hand (q = 0 within the limits).
         close: when q is not given, set every channel to lower + close * (upper - lower), 0..1.
         wrist: wrist pose as X Y Z ROLL PITCH YAW (metres, radians; URDF fixed-axis rpy). Default: the identity,
             or with an object the palm facing down 3 cm above it.
@@ -89,7 +90,9 @@ class BenchCmd:
         devices: device counts to time the "jax" rows with (scaling); default 1, and all local devices when
             there are several.
         repeats: warm calls per row; the median is reported.
-        sampler: wrist-pose sampler (cvae, geometric, random).
+        sampler: wrist-pose sampler (auto, cvae, geometric, random; auto: cvae where weights ship for the hand).
+        hand: built-in hand name (svh, allegro) or a hand-spec TOML; a hand other than the SVH gets its own
+            RESULTS.md block.
         backend: "default" (JAX's choice: the GPU when there is one), "cpu" or "gpu".
         cli_start: also time a cold and a warm `ffcgs grasp` in fresh processes.
         whole_object: the mesh whose whole `synthesize` call is timed, from the mesh to ranked grasps, each time as
@@ -106,7 +109,8 @@ class BenchCmd:
     max_proxsuite_batch: int = 256
     devices: tuple[int, ...] = ()
     repeats: int = 5
-    sampler: str = "cvae"
+    sampler: str = "auto"
+    hand: str = "svh"
     backend: str = "default"
     cli_start: bool = True
     whole_object: str = ""
@@ -147,7 +151,7 @@ def run_bench(cmd: BenchCmd) -> None:
     print(benchmark.markdown(report))
     if cmd.results:
         benchmark.write_results(cmd.results, report)
-        print(f"wrote {cmd.results} (block '{benchmark.machine_key(report['machine'])}')")
+        print(f"wrote {cmd.results} (block '{benchmark.machine_key(report['machine'], cmd.hand)}')")
     if cmd.json:
         benchmark.save_json(report, cmd.json)
         print(f"wrote {cmd.json}")

@@ -328,7 +328,7 @@ def batches(path: str | Path, batch_size: int, seed: int, shuffle_buffer: int = 
     """Batches of grasps, each paired with its record's SDF, as stacked numpy arrays:
 
         {"sdf": (B, R, R, R, 4) float32, "origin": (B, 3), "voxel_size": (B,), "table_z": (B,),
-         "pose": (B, 4, 4), "q": (B, 9), "epsilon": (B,), "record": (B,) int64, "grasp": (B,) int64}
+         "pose": (B, 4, 4), "q": (B, Q), "epsilon": (B,), "record": (B,) int64, "grasp": (B,) int64}
 
     Shuffling: per epoch e, a generator seeded with (seed, e) permutes each record's grasps and feeds them through
     a shuffle buffer of `shuffle_buffer` grasps (records stream in file order). Memory: at most `shuffle_buffer`

@@ -1,7 +1,7 @@
 """Annotation planner: batched simulated annealing over wrist pose and channels, then Q-distance refinement.
 
 The paper annotated its training grasps with GraspIt!'s simulated annealing. This is the same idea as one
-jit-compiled `lax.scan` over a whole population: every candidate random-walks its wrist twist and its 9 channels
+jit-compiled `lax.scan` over a whole population: every candidate random-walks its wrist twist and its channels
 under Metropolis acceptance with a geometrically cooling temperature, scored by a cheap energy without the LP
 (so thousands of candidates fit in a batch). The best candidates then go through `synthesis.grasp.synthesize(poses=...)`
 (the gradient optimiser, filters and the mesh epsilon); `dedupe` drops near-duplicate wrists and `physics_select`
@@ -122,6 +122,7 @@ def anneal(hand: Hand, target: Target, cfg: PlannerConfig, key: jax.Array, sampl
     """
     cfg.check()
     # two compiled calls rather than one fused: callers (tests, benchmarks) reuse the same executables
+    _, sampling = samplers.for_hand("geometric", hand, sampling)  # the hand's standoff where it is 0
     s = start_jit(hand, target, cfg, key, sampling, filters)
     return anneal_from_jit(hand, target, cfg, s.poses, s.q, s.keys, filters)
 

@@ -8,7 +8,7 @@ Records
     metadata object name, SHA-256 of the source mesh, rotation index, the 3x3 rotation matrix applied to the mesh,
     split name ("train", "val", ...); the SDF (grid (R, R, R, 4) float32, origin (3,), voxel_size, table_z, in the
     rotated object's frame, see `geometry.sdf.GradientSDF`); and the kept grasps: wrist_pose (G, 4, 4) in the
-    object frame, q (G, 9) joint channels, per-grasp epsilon, E, E_g, E_c (G,) and optionally the physics results
+    object frame, q (G, Q) channels of the hand (9 on the SVH, 16 on the Allegro), per-grasp epsilon, E, E_g, E_c (G,) and optionally the physics results
     lift_shake_success, six_dir_success (G,) bool. G = 0 is allowed.
 
     Record id: `record_id(object_name, rotation_index)` = "<name>.r<rotation_index:04d>", where <name> is the object
@@ -21,7 +21,7 @@ MCAP topics (schema encoding "jsonschema"; the schemas are `SCHEMAS` below):
               "extra": anything else passed to `mcap_io.init_parts`}. log_time 0.
     /sdf      one message per record, message encoding "ffcgs.arrays.v1" (below): meta + arrays grid <f4 (R,R,R,4),
               origin <f8 (3,), voxel_size <f8 (), table_z <f8 ().
-    /grasps   one message per record, same encoding: meta + arrays wrist_pose <f8 (G,4,4), q <f8 (G,9),
+    /grasps   one message per record, same encoding: meta + arrays wrist_pose <f8 (G,4,4), q <f8 (G,Q),
               epsilon, E, E_g, E_c <f8 (G,), and if present lift_shake_success, six_dir_success |b1 (G,).
     Record i (0-based, in record-id order) has its /sdf then its /grasps message, both with log_time = publish_time =
     sequence = i. The header "meta" of both messages is {"record_id", "object_name", "mesh_sha256",
@@ -201,7 +201,7 @@ class Record:
             raise FfcgsError(f"{where}: rotation must be a proper rotation matrix (orthonormal, det +1)")
         wrist_pose = arr("wrist_pose", wrist_pose, "<f8", lambda s: len(s) == 3 and s[1:] == (4, 4), "(G, 4, 4)")
         g = wrist_pose.shape[0]
-        q = arr("q", q, "<f8", lambda s: s == (g, 9), f"(G, 9) = ({g}, 9)")
+        q = arr("q", q, "<f8", lambda s: len(s) == 2 and s[0] == g and s[1] >= 1, f"(G, Q) with G = {g}")
         scalars = {k: arr(k, v, "<f8", lambda s: s == (g,), f"(G,) = ({g},)")
                    for k, v in (("epsilon", epsilon), ("E", E), ("E_g", E_g), ("E_c", E_c))}
         physics = {k: None if v is None else arr(k, v, "|b1", lambda s: s == (g,), f"(G,) = ({g},)")

@@ -135,7 +135,7 @@ def load_hand(source: str | Path = "svh") -> Hand:
         sphere_body=jnp.asarray(body, jnp.int32),
         sphere_pos=jnp.asarray(pos, dtype),
         sphere_radius=jnp.asarray(rad, dtype),
-        box_vertices=jnp.asarray(_box_vertices(m, root_inv), dtype),
+        box_vertices=jnp.asarray(_box_vertices(m, root_inv, open_qpos(coupling, spec)), dtype),
         tip_body=jnp.asarray(tip_body, jnp.int32),
         tip_pos=jnp.asarray(tip_pos, dtype),
         tip_radius=jnp.asarray(tip_rad, dtype),
@@ -222,7 +222,8 @@ def fingertip_spheres(hand: Hand, frames: HandFrames) -> tuple[Float[Array, "C T
 
 
 def box_vertices(hand: Hand, wrist_pose: Float[Array, "4 4"]) -> Float[Array, "V 3"]:
-    """Corners of the collision geoms' boxes with all channels at 0, in the world frame (the paper's pose filter)."""
+    """Corners of the collision geoms' boxes of the open hand (`open_qpos`), in the world frame (the paper's pose
+    filter)."""
     return _apply(wrist_pose, hand.box_vertices)
 
 
@@ -329,8 +330,15 @@ def _tip_candidates(m: mujoco.MjModel, sites: list[int], body: np.ndarray, pos: 
             np.array([[r for _, r in c] for c in cands]))
 
 
-def _box_vertices(m: mujoco.MjModel, root_inv: np.ndarray) -> np.ndarray:
+def open_qpos(coupling: np.ndarray, spec: HandSpec) -> np.ndarray:
+    """MuJoCo qpos of the open hand, where every descent starts: q = 0 clamped into the channel limits (the SVH's
+    lower limits are 0; the Allegro's thumb rotation starts at 0.263 rad)."""
+    return np.asarray(coupling, np.float64) @ np.clip(0.0, spec.lower, spec.upper)
+
+
+def _box_vertices(m: mujoco.MjModel, root_inv: np.ndarray, qpos: np.ndarray) -> np.ndarray:
     d = mujoco.MjData(m)
+    d.qpos[:] = qpos
     mujoco.mj_kinematics(m, d)
     signs = np.array(np.meshgrid([-1, 1], [-1, 1], [-1, 1], indexing="ij")).reshape(3, -1).T
     out = []

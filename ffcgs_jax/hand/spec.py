@@ -19,7 +19,10 @@ A hand is data, not code: any MJCF hand works given a small TOML spec next to it
     joints = ["ja", "jb", "jb2"]
     matrix = [[1, 0], [0, 1], [0, 0.5]]
 
-Every MJCF hinge/slide joint must appear in `coupling.joints` (a joint left out would have no defined angle).
+Every MJCF hinge/slide joint must appear in `coupling.joints` (a joint left out would have no defined angle), every
+joint needs a non-zero row and every channel a non-zero column of the matrix, each contact site must ride on a body
+that a joint moves, and the hand needs collision geoms (contype or conaffinity non-zero). A spec that breaks a rule
+is refused with one `FfcgsError` line naming the spec file and the problem. docs/custom_hand.md is the user's guide.
 """
 
 import dataclasses
@@ -36,7 +39,7 @@ _TOP_KEYS = {"name", "mjcf", "root_body", "contact_sites", "palm_site", "palm_no
              "channels", "coupling"}
 _CHANNEL_KEYS = {"names", "lower", "upper"}
 _COUPLING_KEYS = {"joints", "matrix"}
-BUILTIN_HANDS = ("svh",)
+BUILTIN_HANDS = ("svh", "allegro")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -61,7 +64,8 @@ class HandSpec:
         try:
             return mujoco.MjModel.from_xml_path(self.mjcf_path)
         except ValueError as e:
-            raise FfcgsError(f"MJCF {self.mjcf_path} does not compile: {e}") from None
+            detail = "; ".join(line.strip() for line in str(e).splitlines() if line.strip())  # MuJoCo's are 2 lines
+            raise FfcgsError(f"MJCF {self.mjcf_path} does not compile: {detail}") from None
 
 
 def builtin_spec_path(name: str) -> Path:
@@ -118,7 +122,11 @@ def load_spec(source: str | Path = "svh") -> HandSpec:
         tetrahedron_sites=tet, channel_names=names, lower=lower, upper=upper, coupling_joints=joints,
         coupling=tuple(_floats(r, f"{where} [coupling] matrix") for r in matrix),
     )
-    _check_names(spec, spec.mj_model(), where)
+    try:
+        m = spec.mj_model()
+    except FfcgsError as e:
+        raise FfcgsError(f"{where}: {e}") from None
+    _check_names(spec, m, where)
     return spec
 
 
@@ -157,6 +165,34 @@ def _check_names(spec: HandSpec, m: mujoco.MjModel, where: str) -> None:
                 if int(m.jnt_type[j]) not in (int(mujoco.mjtJoint.mjJNT_HINGE), int(mujoco.mjtJoint.mjJNT_SLIDE))]
     if bad_type:
         raise FfcgsError(f"{where}: only hinge/slide joints are supported, not {bad_type}")
+    _check_structure(spec, m, root, where)
+
+
+def _check_structure(spec: HandSpec, m: mujoco.MjModel, root: int, where: str) -> None:
+    """What the names alone do not show: fingertips that cannot move, joints or channels the coupling leaves out,
+    a hand without collision geoms. Runs after `_check_names`, so every name resolves."""
+    for s in spec.contact_sites:
+        site_body = b = int(m.site_bodyid[mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_SITE, s)])
+        moved = False
+        while b not in (0, root):  # up to the root (or the world, for a site off the hand)
+            moved = moved or m.body_jntnum[b] > 0
+            b = int(m.body_parentid[b])
+        if not moved:
+            body = mujoco.mj_id2name(m, mujoco.mjtObj.mjOBJ_BODY, site_body) or f"#{site_body}"
+            raise FfcgsError(f"{where}: contact site {s!r} is on body {body!r}, which no joint moves (the root body, "
+                             "the world, or welded to them by joint-less bodies); put it on a fingertip body")
+    matrix = np.asarray(spec.coupling, float).reshape(len(spec.coupling_joints), len(spec.channel_names))
+    undriven = [j for j, row in zip(spec.coupling_joints, matrix) if not np.any(row)]
+    if undriven:
+        raise FfcgsError(f"{where}: [coupling] matrix leaves joint(s) {undriven} undriven (all-zero row); give each "
+                         "joint a non-zero entry for the channel that moves it")
+    idle = [c for c, col in zip(spec.channel_names, matrix.T) if not np.any(col)]
+    if idle:
+        raise FfcgsError(f"{where}: channel(s) {idle} drive no joint (all-zero column of [coupling] matrix); "
+                         "remove them from [channels] or give them a non-zero entry")
+    if not any(m.geom_bodyid[g] != 0 and (m.geom_contype[g] or m.geom_conaffinity[g]) for g in range(m.ngeom)):
+        raise FfcgsError(f"{where}: the hand has no collision geoms (no geom with contype or conaffinity on a "
+                         "non-world body); the penetration penalty and the physics test need collision geoms")
 
 
 def _keys(table: dict, valid: set[str], where: str, required: set[str]) -> None:

@@ -147,9 +147,12 @@ class TrainConfig:
         seed: seeds the initial parameters, the batch order and the latent noise.
         log_every: steps between metric log lines (the loss is averaged over them).
         steps_per_call: optimiser steps fused into one compiled call (a lax.scan): fewer host round trips on GPU.
+        hand: the hand the sampler is for (built-in name or hand-spec TOML); "" = the hand the dataset was built
+            for (its stored build config). A hand other than the dataset's is refused.
     """
 
     out: str = "runs/sampler"
+    hand: str = ""
     seed: int = 0
     log_every: int = 50
     steps_per_call: int = 50

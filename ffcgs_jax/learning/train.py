@@ -133,12 +133,25 @@ def evaluate(params, data: cvae_data.TrainData, records: np.ndarray, palm_root, 
     return {"rec": float(rec.mean()), "kl": float(kl.mean()), "grasps": int(len(sel))}
 
 
+def dataset_hand(path: str, hand: str = "") -> str:
+    """The hand a dataset file was built for (its build config's `hand`; the SVH for files that predate the field),
+    or `hand` after checking that it is the same hand."""
+    from ffcgs_jax.dataset import mcap_io
+    from ffcgs_jax.hand.spec import load_spec
+
+    built = ((mcap_io.read_config(path).get("config") or {}).get("hand") or "svh")
+    if hand and load_spec(hand).name != load_spec(built).name:
+        raise FfcgsError(f"{path} was built for hand {built!r}, not {hand!r}: train on a dataset of that hand "
+                         "(ffcgs dataset build --hand ...)")
+    return hand or built
+
+
 def _weights_meta(cfg: TrainConfig, hand: str, extra: dict) -> dict:
     return {"format": WEIGHTS_FORMAT, "version": __version__, "hand": hand, "model": dataclasses.asdict(cfg.model),
             "train": {"config": to_toml(cfg)} | extra}
 
 
-def train(cfg: TrainConfig, hand: str = "svh", progress: bool = True, until_epoch: int | None = None,
+def train(cfg: TrainConfig, hand: str | None = None, progress: bool = True, until_epoch: int | None = None,
           data: cvae_data.TrainData | None = None) -> dict | None:
     """Train one configuration (one fold); see the module docstring. Returns a summary dict (also in summary.json).
 
@@ -161,7 +174,7 @@ def train(cfg: TrainConfig, hand: str = "svh", progress: bool = True, until_epoc
     if data.res != cfg.model.res:
         raise FfcgsError(f"the dataset's SDFs are {data.res}^3 but model.res is {cfg.model.res}")
     train_recs, val_recs = cvae_data.split(data, cfg.cv.folds, cfg.cv.fold, cfg.seed)
-    palm_root, tet_root, hand_name = hand_points(hand)
+    palm_root, tet_root, hand_name = hand_points(dataset_hand(cfg.data.path, hand or cfg.hand))
     palm_root, tet_root = jnp.asarray(palm_root), jnp.asarray(tet_root)
     o, k = cfg.optim, cfg.data.grasps_per_sdf
     steps_per_epoch = cvae_data.steps_per_epoch(data, train_recs, o.batch, k)

@@ -33,13 +33,15 @@ class PhysicsConfig:
             the built-in mug, where 1 and 10 let half of those grasps slide out.
         mass: object mass in kg (100 g), used when `density` is 0.
         density: object density in kg/m^3; > 0 replaces `mass` with density x mesh volume.
-        kp: position-servo gain of the 9 channel actuators (N m/rad); the MJCF's value is 5.
+        kp: position-servo gain of the channel actuators (N m/rad); 0 (the default) keeps the hand MJCF's own
+            gains (the SVH's 5, the Allegro's 10).
         squeeze: radians the close target goes beyond the grasp's q, along the channel direction that pushes the
             fingertips near the surface into it (sum of J_i^T (-n_i), scaled so its largest channel moves by
             `squeeze`). The servos then press with about kp x squeeze.
         contact_band: fingertips within this distance of the surface (m) count for the squeeze direction.
-        open_fraction: the fingers start at (1 - open_fraction) q, on the straight channel path from the open
-            hand (q = 0, which the synthesis filters checked) to q; 1 = fully open.
+        open_fraction: the fingers start at q_open + (1 - open_fraction) (q - q_open), on the straight channel
+            path from the open hand (q_open: q = 0 clamped into the limits, which the synthesis filters checked) to
+            q; 1 = fully open.
         close_time, settle_time: seconds to ramp the servos from start to target, then to hold before testing.
         lift_height, lift_speed: lift-shake: the wrist rises this far (m) at this speed (m/s).
         shake_amplitude, shake_cycles, shake_speed: lift-shake: then it moves +-amplitude along world x, this
@@ -70,7 +72,7 @@ class PhysicsConfig:
     impratio: float = 100.0
     mass: float = 0.1
     density: float = 0.0
-    kp: float = 5.0
+    kp: float = 0.0
     squeeze: float = 0.2
     contact_band: float = 0.01
     open_fraction: float = 1.0

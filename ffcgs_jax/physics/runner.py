@@ -2,8 +2,9 @@
 
 Execution of one grasp (all grasps of a batch in parallel):
 
-1. The hand is put at the grasp's wrist pose with the fingers at (1 - open_fraction) q, on the straight channel
-   path from the open hand (q = 0, which the synthesis filters checked against the object and the table) to q.
+1. The hand is put at the grasp's wrist pose with the fingers at q_open + (1 - open_fraction) (q - q_open), on the
+   straight channel path from the open hand (q_open: q = 0 clamped into the limits, which the synthesis filters
+   checked against the object and the table) to q.
    If the hand then reaches deeper than `max_initial_penetration` into the object at q, the grasp fails
    ("penetration") without simulating.
 2. Close (six-dir: with the floating object welded in place, as the table holds it in lift-shake, so the first
@@ -138,7 +139,8 @@ def prepare(scene: PhysicsScene, mesh: trimesh.Trimesh, wrist_pose, q, cfg: Phys
     else:
         direction = squeeze_dir
     target = np.clip(qq + cfg.squeeze * direction, scene.lower, scene.upper)
-    start = (1.0 - cfg.open_fraction) * qq
+    q_open = np.clip(0.0, scene.lower, scene.upper)  # where the synthesis starts: q = 0 within the limits
+    start = q_open + (1.0 - cfg.open_fraction) * (qq - q_open)
     return Batch(T[:, :3, 3].copy(), quat, start, target), depth, palm
 
 

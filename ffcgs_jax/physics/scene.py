@@ -1,8 +1,8 @@
 """The MuJoCo model of the physics test: the hand on a driven wrist, the object as a free body, the table.
 
 - The hand's root body has a free joint welded (stiffly: `WELD_TIMECONST`) to a mocap body that carries the
-  commanded wrist pose, with its weight compensated as an arm would; the 9 channel servos (`PhysicsConfig.kp`)
-  with the MJCF's 11 coupling constraints move the fingers.
+  commanded wrist pose, with its weight compensated as an arm would; the channel servos (`PhysicsConfig.kp`)
+  with the MJCF's coupling constraints (the SVH's 11, none on the Allegro) move the fingers.
 - The object is a free body made of the convex parts of `convex.decompose`, with the mesh's centre of mass and
   inertia scaled to `mass` (or density x volume). Its frame is the mesh frame, so at qpos = identity it sits exactly
   where the grasps were planned.
@@ -78,17 +78,25 @@ def build(spec: HandSpec, mesh: trimesh.Trimesh, parts: list[tuple[np.ndarray, n
     root = s.body(spec.root_body)
     if root is None:
         raise FfcgsError(f"hand MJCF has no root body {spec.root_body!r}")
+    actuators = tuple(a.name for a in s.actuators)
+    if actuators != spec.channel_names:  # ctrl rows are channel vectors q
+        raise FfcgsError(f"the physics test needs one actuator per channel of hand {spec.name!r}, named and ordered "
+                         f"as its [channels] names {list(spec.channel_names)}; its MJCF has {list(actuators)}")
     # The wrist: a free joint welded to a mocap target. Moving a mocap body directly teleports the hand with zero
     # velocity, and MuJoCo's friction, which acts on velocities, then lets the object slide out frictionlessly.
     root.add_freejoint().name = "wrist"
     target = s.worldbody.add_body()
     target.name, target.mocap = "wrist_target", True
+    # The weld keeps the root's pose relative to the target as it is in the compiled model: the target starts on the
+    # root, so that relative pose is the identity (the SVH's root is the MJCF's origin; the Allegro's palm is turned
+    # 90 degrees there, and a target at the origin would twist the hand away from every grasp).
+    target.pos, target.quat = root.pos, root.quat
     weld = s.add_equality()
     weld.type, weld.objtype = mujoco.mjtEq.mjEQ_WELD, mujoco.mjtObj.mjOBJ_BODY
     weld.name1, weld.name2 = spec.root_body, "wrist_target"
     weld.solref = [WELD_TIMECONST, 1.0]
     _gravcomp(root)
-    for a in s.actuators:  # position servo: force = kp (ctrl - q)
+    for a in s.actuators if cfg.kp > 0 else ():  # position servo: force = kp (ctrl - q)
         a.gainprm[0] = cfg.kp
         a.biasprm[1] = -cfg.kp
 

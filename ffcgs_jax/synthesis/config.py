@@ -164,14 +164,15 @@ class SamplerConfig:
     Attributes:
         translation_scale: "random": the palm centre is uniform in the object's axis-aligned bounding box scaled by
             this factor about its centre (paper, V.A.1: "two times the size of the object's bounding box").
-        standoff: "geometric": metres from the surface point to the palm centre, along the outward normal.
-            0.05 m, the smallest round standoff at which the open hand (q = 0) clears a flat face: its farthest
-            collision-box corner along the palm normal (the thumb's proximal link) lies 4.5 cm in front of the
-            palm centre, and on the built-in box the fraction of candidates passing the box-corner filter rises
-            from 26 % at 4-4.5 cm to 34 % at 5 cm and stays there. A larger standoff only moves the fingertips
-            away: along the palm normal they reach at most 4.2 cm (fingers, near mid-closure q = (lower +
-            upper) / 2) and 4.6 cm (thumb, at 30 % closure), and the fingertips' mean distance to the built-in
-            objects at mid-closure grows by about 0.7 cm per cm of standoff.
+        standoff: "geometric": metres from the surface point to the palm centre, along the outward normal; 0 (the
+            default) derives it from the hand (`hand.sites.default_standoff`): the smallest multiple of 5 mm at
+            which the open hand clears a flat face, its farthest collision-box corner along the palm normal. For
+            the SVH that corner (the thumb's proximal link) lies 4.5 cm in front of the palm centre, so 5 cm;
+            on the built-in box the fraction of candidates passing the box-corner filter rises from 26 % at
+            4-4.5 cm to 34 % at 5 cm and stays there. A larger standoff only moves the fingertips away: along the
+            palm normal the SVH's reach at most 4.2 cm (fingers, near mid-closure q = (lower + upper) / 2) and
+            4.6 cm (thumb, at 30 % closure), and the fingertips' mean distance to the built-in objects at
+            mid-closure grows by about 0.7 cm per cm of standoff.
         oversample: "geometric": candidates drawn per requested pose before the collision and palm-up filters.
             About 6 % pass on the built-in mug (its cavity and the table reject most) and 34 % on the box, so
             32 leaves about twice the poses needed on the mug; raise it for objects with little free surface.
@@ -182,7 +183,7 @@ class SamplerConfig:
     """
 
     translation_scale: float = 2.0
-    standoff: float = 0.05
+    standoff: float = 0.0
     oversample: int = 32
     cvae_oversample: int = 4
     weights: str = ""
@@ -190,8 +191,10 @@ class SamplerConfig:
     def check(self) -> None:
         for name, lo, hi in (("translation_scale", 0.0, 100.0), ("standoff", 0.0, 1.0)):
             v = getattr(self, name)
-            if not (isinstance(v, (int, float)) and math.isfinite(v) and lo < v <= hi):
-                raise FfcgsError(f"sampler.{name} must be a number in ({lo}, {hi}], got {v!r}")
+            ok = isinstance(v, (int, float)) and math.isfinite(v) and (lo < v or (name == "standoff" and v == 0))
+            if not (ok and v <= hi):
+                zero = " (0: derived from the hand)" if name == "standoff" else ""
+                raise FfcgsError(f"sampler.{name} must be a number in ({lo}, {hi}]{zero}, got {v!r}")
         if not (isinstance(self.oversample, int) and 1 <= self.oversample <= 4096):
             raise FfcgsError(f"sampler.oversample must be an integer in [1, 4096], got {self.oversample!r}")
         check_integer("sampler.cvae_oversample", self.cvae_oversample, 1, 4096)
@@ -206,8 +209,10 @@ class GraspConfig:
 
     Attributes:
         n: wrist poses sampled and optimised as one batch.
-        sampler: "cvae" (the learned sampler, weights shipped; the default since it beats geometric on E and E_g,
-            bench/RESULTS.md "Learned sampler"), "geometric" or "random" (Table I's baselines).
+        sampler: "auto" (the default): "cvae" where weights ship for the hand (the SVH) or `sampling.weights`
+            names a file, else "geometric". "cvae" (the learned sampler; it beats geometric on E and E_g,
+            bench/RESULTS.md "Learned sampler"), "geometric" or "random" (Table I's baselines) choose one.
+            `synthesize` resolves "auto" before it runs; its GraspSet's config names the sampler used.
         seed: PRNG seed of the sampler.
         max_penetration: a grasp whose hand collision spheres reach deeper than this into the object (metres) is
             not valid. 1 cm, as the physics test's initial-penetration rule; the paper does not check this.
@@ -225,7 +230,7 @@ class GraspConfig:
     """
 
     n: int = 32
-    sampler: str = "cvae"
+    sampler: str = "auto"
     seed: int = 0
     max_penetration: float = 0.01
     max_contact_rms: float = 0.01
@@ -241,8 +246,8 @@ class GraspConfig:
     def check(self) -> None:
         if not 1 <= self.n <= 1_000_000:
             raise FfcgsError(f"n must be >= 1 (and at most 1e6), got {self.n}")
-        if self.sampler not in SAMPLERS:
-            raise FfcgsError(f"unknown sampler {self.sampler!r}; samplers: {', '.join(SAMPLERS)}")
+        if self.sampler not in ("auto", *SAMPLERS):
+            raise FfcgsError(f"unknown sampler {self.sampler!r}; samplers: auto, {', '.join(SAMPLERS)}")
         if not 0 <= self.max_penetration <= 1:
             raise FfcgsError(f"max_penetration must be in [0, 1] m, got {self.max_penetration}")
         if not 0 <= self.max_contact_rms <= 1:

@@ -2,7 +2,7 @@
 
 The paper filters twice: before optimising, a wrist pose is dropped when a corner of the hand's collision boxes
 (all channels at 0) lies inside the object or the table, or when the palm points upwards (unreachable for the
-robot arm); after optimising, a grasp is dropped when a fingertip went below the table on its way from q = 0 to
+robot arm); after optimising, a grasp is dropped when a fingertip went below the table on its way from the open hand (q = 0 clamped into the limits) to
 the final q (the cached fingertip path approximates the real closing motion). Its penetration term covers the
 fingertips only, so palms can end up inside the object (its Fig. 7 b-c); `hand_penetration` measures that with the
 hand's collision spheres and `penetration_penalty` is a smooth version to add to the energy.
@@ -29,7 +29,7 @@ from ffcgs_jax.types import Array, Bool, Float
 
 
 def pose_clearance(hand: Hand, sdf: GradientSDF, wrist_pose: Float[Array, "4 4"]) -> Float[Array, ""]:
-    """Smallest signed distance (metres) from a box corner of the open hand (q = 0) to the object or the table.
+    """Smallest signed distance (metres) from a box corner of the open hand (q = 0 clamped into the limits) to the object or the table.
 
     Negative means a corner is inside; the geometric sampler ranks poses that fail the filter by it.
     """
@@ -40,7 +40,7 @@ def pose_clearance(hand: Hand, sdf: GradientSDF, wrist_pose: Float[Array, "4 4"]
 def pose_collides(
     hand: Hand, sdf: GradientSDF, wrist_pose: Float[Array, "4 4"], cfg: FilterConfig = FilterConfig()
 ) -> Bool[Array, ""]:
-    """True when a corner of the hand's collision boxes at q = 0 is closer than cfg.clearance to object or table.
+    """True when a corner of the hand's collision boxes of the open hand is closer than cfg.clearance to object or table.
 
     The paper's pose filter: corners rather than the whole boxes, so a thin object edge can slip between two
     corners; the whole-hand check at the final grasp (`hand_penetration`) catches what this misses.
@@ -73,7 +73,7 @@ def palm_up(hand: Hand, wrist_pose: Float[Array, "4 4"], cfg: FilterConfig = Fil
 def tips_below_table(sdf: GradientSDF, cached_tips: Float[Array, "T C 3"], margin: float = 0.0) -> Bool[Array, ""]:
     """True when any cached fingertip position along the optimisation path lies below table_z + margin.
 
-    The path from q = 0 to the final q stands in for the real closing motion (section IV.B), so a tip that dips
+    The path from the open hand to the final q stands in for the real closing motion (section IV.B), so a tip that dips
     below the table on the way would hit it on the robot even if the final grasp is above it.
 
     Args:
@@ -138,7 +138,7 @@ def penetration_penalty(
     frames: K.HandFrames | None = None,
 ) -> Float[Array, ""]:
     """Whole-hand collision penalty (metres^2): sum over collision spheres of max(0, r - d(c) - CONTACT_TOL)^2
-    against object and table at q, plus sum over the q = 0 box corners of max(0, -d(v))^2 at the same wrist pose.
+    against object and table at q, plus sum over the open hand's box corners of max(0, -d(v))^2 at the same wrist pose.
 
     The first term keeps the closed hand out of the object and the table (the paper's Fig. 7 failure mode); the
     second is what the approach filter (`pose_collides`) checks, and only matters when the wrist moves. A sum, not

@@ -12,6 +12,7 @@ jit-compiled function per n (n is static); calling `sample` inside an outer `jax
   point; candidates that fail the pose filters of Algorithm 1 are dropped (see `geometric_candidates`).
 """
 
+import dataclasses
 from collections.abc import Callable
 from functools import lru_cache, partial
 from pathlib import Path
@@ -26,7 +27,7 @@ from ffcgs_jax.errors import FfcgsError
 from ffcgs_jax.geometry import sdf as S
 from ffcgs_jax.geometry.sdf import GradientSDF
 from ffcgs_jax.hand.kinematics import Hand
-from ffcgs_jax.hand.sites import palm_centre_root
+from ffcgs_jax.hand.sites import default_standoff, palm_centre_root
 from ffcgs_jax.learning import cvae
 from ffcgs_jax.learning.weights import load_weights, shipped_weights
 from ffcgs_jax.synthesis import filters as F
@@ -198,12 +199,14 @@ def geometric_candidates(
         key: PRNG key.
         sdf: the object grid (object and table).
         m: number of candidates (static).
-        cfg: standoff.
+        cfg: standoff (> 0: `for_hand` turns the default 0 into the hand's).
         filters: thresholds of the pose filters (default: the paper's).
         mesh: devices to split the filters' work over (`sharding.split`); None: the default device.
     Returns:
         Candidates, with the filter verdicts.
     """
+    if cfg.standoff == 0:  # static: raised while tracing
+        raise FfcgsError("sampler.standoff 0 means 'derived from the hand': resolve it with samplers.for_hand first")
     k_p, k_s = jax.random.split(key)
     f = filters
     # The palm faces -n, so the palm-up filter rejects exactly the normals with n_z < -palm_up_max: draw only
@@ -306,17 +309,19 @@ def make_sampler(
     here (one compilation per n); it is deterministic for a fixed key.
 
     Args:
-        name: "random", "geometric" or "cvae" (see the module docstring).
+        name: "random", "geometric", "cvae" (see the module docstring) or "auto" (`for_hand`).
         hand: from `hand.kinematics.load_hand`.
-        cfg: sampler options, checked here (`cfg.weights`: the cvae's weights file, "" for the shipped ones).
+        cfg: sampler options, checked here (`cfg.weights`: the cvae's weights file, "" for the shipped ones;
+            `cfg.standoff` 0: derived from the hand).
         filters: thresholds of the pose filters the geometric and cvae samplers apply (default: the paper's).
     Returns:
         The sampler function.
     """
-    if name not in CORES:
-        raise FfcgsError(f"unknown sampler {name!r}; valid names: {', '.join(names())}")
+    if name not in CORES and name != "auto":
+        raise FfcgsError(f"unknown sampler {name!r}; valid names: auto, {', '.join(names())}")
     cfg.check()
     filters.check()
+    name, cfg = for_hand(name, hand, cfg)
     palm_root = jnp.asarray(palm_centre_root(hand))
     params, res = sampler_params(name, hand, cfg)
     core = jax.jit(partial(CORES[name], cfg=cfg, filters=filters, res=res), static_argnames="n")
@@ -329,6 +334,17 @@ def make_sampler(
 
     sample.__name__ = sample.__qualname__ = f"sample_{name}"
     return sample
+
+
+def for_hand(name: str, hand: Hand, cfg: SamplerConfig) -> tuple[str, SamplerConfig]:
+    """The sampler name and options with the hand-dependent defaults filled in: "auto" becomes "cvae" where
+    weights ship for the hand or `cfg.weights` names a file, else "geometric"; a standoff of 0 becomes
+    `hand.sites.default_standoff(hand)`."""
+    if name == "auto":
+        name = "cvae" if cfg.weights or shipped_weights(hand.spec.name).is_file() else "geometric"
+    if cfg.standoff == 0:
+        cfg = dataclasses.replace(cfg, standoff=default_standoff(hand))
+    return name, cfg
 
 
 def weights_path(hand: Hand, weights: str = "") -> Path:

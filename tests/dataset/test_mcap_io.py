@@ -254,8 +254,8 @@ def test_bad_input(tmp_path, dataset):
     with pytest.raises(FfcgsError, match="expected 'ffcgs.arrays.v1'"):
         list(dio.iter_records(wrong))
 
-    with pytest.raises(FfcgsError, match=r"q must have shape \(G, 9\)"):
-        schema.Record.create(**{**_fields(make_record("o", 0, 3, 0)), "q": np.zeros((3, 8))})
+    with pytest.raises(FfcgsError, match=r"q must have shape \(G, Q\) with G = 3"):
+        schema.Record.create(**{**_fields(make_record("o", 0, 3, 0)), "q": np.zeros((2, 9))})
     with pytest.raises(FfcgsError, match="grid must have shape"):
         schema.Record.create(**{**_fields(make_record("o", 0, 3, 0)), "grid": np.zeros((4, 4, 5, 4))})
     with pytest.raises(FfcgsError, match="rotation"):

@@ -277,7 +277,7 @@ def test_bad_specs_name_the_problem(tmp_path, changes, message):
 
 def test_unknown_builtin_hand_lists_choices():
     with pytest.raises(FfcgsError, match="built-in hands: svh"):
-        K.load_hand("allegro")
+        K.load_hand("shadow")
 
 
 def test_input_checks(svh):

@@ -241,3 +241,25 @@ def test_grasp_validate_end_to_end(capsys, tmp_path):
     assert len(a["q"]) == kept and a["valid"].all()
     if kept:  # the short synthesis may leave no valid grasp; test_validate_keeps_the_grasps_that_pass covers that
         assert a["six_dir_success"].all()
+
+
+@pytest.mark.parametrize("hand", ["svh", "allegro"])
+def test_the_wrist_weld_holds_the_hand_where_it_is_put(hand):
+    """Away from the object, the hand stays on its commanded wrist pose: the weld's rest pose is the identity for
+    any root body frame (the Allegro's palm is turned 90 degrees in its MJCF; a weld that kept that turn threw the
+    hand off every grasp)."""
+    from ffcgs_jax.physics import backend, scene as physics_scene
+
+    spec = hand_spec.load_spec(hand)
+    s = physics_scene.build(spec, BALL, convex.decompose(BALL, PhysicsConfig()), PhysicsConfig(),
+                            table_z=float(BALL.bounds[0, 2]))
+    m, d = s.model, mujoco.MjData(s.model)
+    quat = np.array([0.9, 0.3, -0.2, 0.25]) / np.linalg.norm([0.9, 0.3, -0.2, 0.25])
+    pos = np.array([0.05, -0.1, 0.6])  # far above the ball
+    q_open = np.clip(0.0, s.lower, s.upper)
+    backend.pose_hand(s, d, pos, quat, q_open)
+    d.ctrl[:] = q_open
+    mujoco.mj_step(m, d, 100)
+    got = d.qpos[s.root_qpos: s.root_qpos + 7]
+    assert np.linalg.norm(got[:3] - pos) < 1e-3
+    assert 2 * np.degrees(np.arccos(min(1.0, abs(float(got[3:] @ quat))))) < 0.5

@@ -61,11 +61,11 @@ def assert_rigid(poses) -> None:
 
 def test_names_and_unknown_name(hand):
     assert SM.names() == ["cvae", "geometric", "random"]
-    with pytest.raises(FfcgsError, match="unknown sampler 'learned'.*valid names: cvae, geometric, random"):
+    with pytest.raises(FfcgsError, match="unknown sampler 'learned'.*valid names: auto, cvae, geometric, random"):
         SM.make_sampler("learned", hand)
 
 
-@pytest.mark.parametrize("field, value", [("standoff", 0.0), ("translation_scale", -1.0), ("oversample", 0),
+@pytest.mark.parametrize("field, value", [("standoff", -0.01), ("translation_scale", -1.0), ("oversample", 0),
                                           ("oversample", 5000)])
 def test_bad_config_raises(hand, field, value):
     cfg = dataclasses.replace(SM.SamplerConfig(), **{field: value})
@@ -162,7 +162,8 @@ def test_random_rotations_are_uniform(samplers, objects):
 
 @pytest.mark.parametrize("obj", ["mug", "box"])
 def test_geometric_faces_the_surface_at_the_standoff(hand, samplers, objects, obj):
-    grid, cfg = objects[obj], SM.SamplerConfig()
+    grid, cfg = objects[obj], SM.for_hand("geometric", hand, SM.SamplerConfig())[1]  # the hand's standoff: 5 cm
+    assert cfg.standoff == 0.05
     poses = samplers["geometric"](jax.random.key(5), grid, N)
     h = float(grid.voxel_size)
     c = palm_centres(hand, poses)
@@ -185,7 +186,7 @@ def test_geometric_faces_the_surface_at_the_standoff(hand, samplers, objects, ob
 @pytest.mark.parametrize("obj, lowest", [("mug", 0.03), ("box", 0.2)])
 def test_geometric_valid_fraction(hand, objects, obj, lowest):
     cands = candidates(hand, jnp.asarray(sites.palm_centre_root(hand)), jax.random.key(9), objects[obj], m=N * N,
-                       cfg=SM.SamplerConfig())
+                       cfg=SM.for_hand("geometric", hand, SM.SamplerConfig())[1])
     valid = np.asarray(cands.valid)
     assert valid.mean() > lowest  # ~6 % on the mug, ~34 % on the box (documented in SamplerConfig)
     # the verdicts are the filters' own (checked on the first N), and the violation is 0 exactly for the valid ones
@@ -197,7 +198,7 @@ def test_geometric_valid_fraction(hand, objects, obj, lowest):
 
 def test_geometric_tops_up_with_least_violating(hand, objects):
     """Too few candidates: still n poses, the valid ones first in draw order, then the invalid by violation."""
-    cfg = SM.SamplerConfig(oversample=8)
+    cfg = SM.SamplerConfig(oversample=8, standoff=0.05)
     n, key, grid = N, jax.random.key(11), objects["mug"]
     poses = SM.make_sampler("geometric", hand, cfg)(key, grid, n)
     cands = candidates(hand, jnp.asarray(sites.palm_centre_root(hand)), key, grid, m=8 * n, cfg=cfg)
