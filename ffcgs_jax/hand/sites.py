@@ -47,10 +47,11 @@ _STANDOFFS: dict = {}  # per HandSpec: finding the reach compiles the MJCF
 
 
 def default_standoff(hand: Hand) -> float:
-    """The geometric sampler's standoff for `hand`: `open_hand_reach` rounded up to the next 5 mm, so the open
-    hand clears a flat face it is placed over. The SVH: its thumb's proximal link reaches 4.51 cm, so 5 cm (the
+    """The geometric sampler's standoff for `hand`: `open_hand_reach` rounded up to the next 5 mm (5 mm at least),
+    so the open hand clears a flat face it is placed over. The SVH: its thumb's proximal link reaches 4.51 cm, so 5 cm (the
     value chosen on the built-in box before it was derived: candidates passing the box-corner filter rose from
     26 % at 4-4.5 cm to 34 % at 5 cm and stayed there)."""
     if hand.spec not in _STANDOFFS:
-        _STANDOFFS[hand.spec] = STANDOFF_STEP * math.ceil(open_hand_reach(hand) / STANDOFF_STEP - 1e-9)
+        steps = max(1, math.ceil(open_hand_reach(hand) / STANDOFF_STEP - 1e-9))  # a flat hand still keeps 5 mm
+        _STANDOFFS[hand.spec] = STANDOFF_STEP * steps
     return _STANDOFFS[hand.spec]

@@ -59,7 +59,7 @@ def test_config_file_then_command_line_override(capsys, tmp_path):
     (["hand", "--q", "0", "0", "0", "0", "0", "0", "0", "0", "3"], "outside the joint limits"),
     (["hand", "--close", "2"], r"--close must be in \[0, 1\]"),
     (["hand", "--views", "back"], "unknown view"),
-    (["hand", "--hand", "allegro"], "built-in hands: svh"),
+    (["hand", "--hand", "shadow"], "built-in hands: svh, allegro"),
     (["frobnicate"], "unknown command 'frobnicate'"),
     (["sdf", "mug", "--config", "/no/such.toml"], "config file not found"),
 ])
