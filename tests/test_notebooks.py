@@ -70,3 +70,14 @@ def test_notebook_runs(path, kernel_env):
         plot = [c for c in code if "plt.subplots" in c.source]
         assert picture and _images(picture[0]), "the grasp picture cell shows no image/png"
         assert plot and _images(plot[0]), "the energy plot cell shows no image"
+
+
+@pytest.mark.slow
+def test_quickstart_runs_with_the_allegro(kernel_env, monkeypatch):
+    """The quickstart's HAND parameter: the same notebook on the second built-in hand (slow: one more compile)."""
+    monkeypatch.setenv("FFCGS_NB_HAND", "allegro")
+    nb = nbformat.read(REPO / "notebooks" / "quickstart.ipynb", as_version=4)
+    nbclient.NotebookClient(nb, timeout=600, kernel_name="python3",
+                            resources={"metadata": {"path": str(kernel_env)}}).execute()
+    summary = "".join(o.get("text", "") for c in nb.cells if c.cell_type == "code" for o in c.get("outputs", []))
+    assert "grasps (valid / sampled)" in summary
