@@ -31,9 +31,10 @@ def toy_pose(size: float, angle: float) -> np.ndarray:
     return T
 
 
-def make_toy_dataset(path, n_objects: int = 5, grasps: int = 8, seed: int = 0, res: int = RES):
+def make_toy_dataset(path, n_objects: int = 5, grasps: int = 8, seed: int = 0, res: int = RES, hand: str | None = None,
+                     channels: int = 9):
     rng = np.random.default_rng(seed)
-    w = dio.DatasetWriter(path, {"toy": True, "seed": seed})
+    w = dio.DatasetWriter(path, {"toy": True, "seed": seed, **({"hand": hand} if hand else {})})
     for i in range(n_objects):
         size = 0.03 + 0.01 * i
         grid, origin, h = sphere_grid(size, np.array([0.0, 0.0, size]), res)
@@ -43,6 +44,6 @@ def make_toy_dataset(path, n_objects: int = 5, grasps: int = 8, seed: int = 0, r
         z = np.zeros(grasps)
         w.add(schema.Record.create(object_name=f"toy{i}", mesh_sha256="0" * 64, rotation_index=0, rotation=np.eye(3),
                                 split="train", grid=grid, origin=origin, voxel_size=h,
-                                table_z=0.0, wrist_pose=poses, q=np.zeros((grasps, 9)), epsilon=z, E=z,
+                                table_z=0.0, wrist_pose=poses, q=np.zeros((grasps, channels)), epsilon=z, E=z,
                                 E_g=z, E_c=z, wrist_pose_noisy=noisy))
     return w.finish()

@@ -229,3 +229,15 @@ def test_resample_same_resolution_is_identity_and_coarse_is_close():
     near = np.abs(np.asarray(g32.grid[..., 0])) < 0.02
     err = np.abs(np.asarray(up.grid[..., 0]) - np.asarray(g32.grid[..., 0]))[near]
     assert np.median(err) < 0.1 * float(g16.voxel_size), (np.median(err), float(g16.voxel_size))
+
+
+def test_training_takes_the_datasets_hand(tmp_path):
+    """The sampler is trained for the hand its dataset was built for; naming another hand is refused in one line;
+    files from before the field are the SVH's."""
+    allegro = make_toy_dataset(tmp_path / "a.mcap", n_objects=2, grasps=2, hand="allegro", channels=16)
+    assert cvae_train.dataset_hand(str(allegro)) == "allegro"
+    assert cvae_train.dataset_hand(str(allegro), "allegro") == "allegro"
+    with pytest.raises(FfcgsError, match="built for hand 'allegro', not 'svh'"):
+        cvae_train.dataset_hand(str(allegro), "svh")
+    old = make_toy_dataset(tmp_path / "o.mcap", n_objects=2, grasps=2)
+    assert cvae_train.dataset_hand(str(old)) == "svh"
