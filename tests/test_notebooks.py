@@ -70,6 +70,14 @@ def test_notebook_runs(path, kernel_env):
         plot = [c for c in code if "plt.subplots" in c.source]
         assert picture and _images(picture[0]), "the grasp picture cell shows no image/png"
         assert plot and _images(plot[0]), "the energy plot cell shows no image"
+        shown = [c for c in code if "show_grasps" in c.source]
+        html = "".join(o.get("data", {}).get("text/html", "") for c in shown for o in c.get("outputs", []))
+        try:
+            import viser  # noqa: F401
+        except ImportError:
+            assert "viser" in "".join(o.get("text", "") for c in shown for o in c.get("outputs", []))
+        else:
+            assert shown and "<iframe" in html, "the 3D view cell shows no inline viewer"
 
 
 @pytest.mark.slow

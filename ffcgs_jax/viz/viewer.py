@@ -164,6 +164,20 @@ def _info(d: dict, i: int, rank: int, touching: np.ndarray) -> str:
     return "  \n".join(rows)
 
 
+def free_port() -> int:
+    """A TCP port nothing listens on now (for a second viewer, or one in a notebook)."""
+    import socket
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def show_grasps(gs, hand: K.Hand, mesh: trimesh.Trimesh, **kw) -> GraspView:
+    """`show` for a `synthesis.grasp.GraspSet` (what `synthesize` returns), e.g. in a notebook."""
+    return show({**gs.arrays, "config_json": json.dumps(dataclasses.asdict(gs.config))}, hand, mesh, **kw)
+
+
 def _config(data: dict) -> dict:
     try:
         return json.loads(str(data["config_json"])) if "config_json" in data else {}

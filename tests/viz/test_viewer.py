@@ -2,7 +2,6 @@
 forward kinematics), the ranked stepping, and the page in a real browser (headless Chromium, when installed)."""
 
 import shutil
-import socket
 import subprocess
 
 import jax
@@ -18,12 +17,6 @@ from ffcgs_jax.cli.show_command import ShowCmd, hand_of  # noqa: E402
 from ffcgs_jax.viz import viewer  # noqa: E402
 
 CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
-
-
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 @pytest.fixture(scope="module")
@@ -50,7 +43,7 @@ def grasps():
 @pytest.fixture(scope="module")
 def view(grasps):
     hand, data, mesh = grasps
-    v = viewer.show(data, hand, mesh, port=_free_port())
+    v = viewer.show(data, hand, mesh, port=viewer.free_port())
     yield v
     v.stop()
 
@@ -89,9 +82,9 @@ def test_friction_cones_open_by_the_friction_angle():
 def test_bad_input_is_one_line(grasps):
     hand, data, mesh = grasps
     with pytest.raises(FfcgsError, match="channels but hand"):
-        viewer.show({**data, "q": np.zeros((3, 4))}, hand, mesh, port=_free_port())
+        viewer.show({**data, "q": np.zeros((3, 4))}, hand, mesh, port=viewer.free_port())
     with pytest.raises(FfcgsError, match="no grasps to show"):
-        viewer.show({"q": np.zeros((0, 9))}, hand, mesh, port=_free_port())
+        viewer.show({"q": np.zeros((0, 9))}, hand, mesh, port=viewer.free_port())
     assert hand_of(data, None) == "svh"
     with pytest.raises(FfcgsError, match="match no built-in hand"):
         hand_of({"channel_names": np.array(["a", "b"])}, None)
