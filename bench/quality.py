@@ -20,8 +20,10 @@ Per row, over the object set:
 - medians over the returned grasps (pooled over objects) of E, E_g, E_c (mm) and penetration (mm); and Table-II
   style: per object the mean E, E_g, E_c of the 20 lowest-E of all n sampled poses, median over objects.
 - physics (protocol: `runner.evaluate` with PhysicsConfig(friction=`--friction`, default 0.6) and its other
-  defaults, lift-shake and six-dir): every returned grasp in `gs.order()` order (best first), at most
-  `--max-grasps-per-object` per object (0 = all). Success shares pooled over the tested grasps, 95 % Wilson.
+  defaults, lift-shake and six-dir; `--protocols` may add DexGraspBench's `dexgraspbench`, `dexgraspbench-bodex`,
+  which fix their own friction, mass and gains, in a column each): every returned grasp in `gs.order()` order
+  (best first), at most `--max-grasps-per-object` per object (0 = all). Success shares pooled over the tested
+  grasps, 95 % Wilson.
 - top-1: per object the first returned grasp passes every protocol run (an object without a valid grasp fails).
 - yield: objects with at least n/4 returned grasps.
 - seconds per object: median wall time of `synthesize` without each row's first (compiling) call, its device part
@@ -49,7 +51,7 @@ from tqdm import tqdm
 from ffcgs_jax import config as ffcgs_config
 from ffcgs_jax import files
 from ffcgs_jax.errors import FfcgsError
-from ffcgs_jax.physics.config import BACKENDS, PROTOCOLS, PhysicsConfig
+from ffcgs_jax.physics.config import ALL_PROTOCOLS, BACKENDS, PROTOCOLS, PhysicsConfig
 from ffcgs_jax.physics.protocols import wilson
 from ffcgs_jax.synthesis.config import SAMPLERS, GraspConfig
 
@@ -145,11 +147,11 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
         ap.error(f"--samplers: unknown sampler(s) {', '.join(bad) or '(none given)'}; samplers: {', '.join(SAMPLERS)}")
     args.sampler_list = list(dict.fromkeys(samplers))
     protocols = _split(args.protocols)
-    bad = [p for p in protocols if p not in PROTOCOLS]
+    bad = [p for p in protocols if p not in ALL_PROTOCOLS]
     if bad or not protocols:
         ap.error(f"--protocols: unknown protocol(s) {', '.join(bad) or '(none given)'}; "
-                 f"protocols: {', '.join(PROTOCOLS)}")
-    args.protocol_list = [p for p in PROTOCOLS if p in protocols]
+                 f"protocols: {', '.join(ALL_PROTOCOLS)}")
+    args.protocol_list = [p for p in ALL_PROTOCOLS if p in protocols]
     try:
         args.bases = [load_base(c) for c in (args.config or ["default"])]
     except FfcgsError as e:
@@ -409,10 +411,12 @@ def table(report: dict) -> str:
     conf = report["config"]
     prot = conf["protocols"]
     tol_mm = 1000 * conf["contact_tol"]
+    extra = [p for p in prot if p not in PROTOCOLS]  # DexGraspBench's, a column each after ours
     lines = [
         "| row | objects | valid share | FC touching (returned) | median E / E_g / E_c mm / pen mm (returned) "
-        "| Table-II E / E_g / E_c mm | lift-shake | six-dir | both | top-1 both | yield >= n/4 | s/object |",
-        "|---|---|---|---|---|---|---|---|---|---|---|---|",
+        "| Table-II E / E_g / E_c mm | lift-shake | six-dir | " + "".join(f"{p} | " for p in extra)
+        + "both | top-1 both | yield >= n/4 | s/object |",
+        "|---|---|---|---|---|---|---|---|" + "---|" * len(extra) + "---|---|---|---|",
     ]
     for s in summarise(report):
         fc = rate(s["fc"])
@@ -425,7 +429,8 @@ def table(report: dict) -> str:
             f"| {s['row']} | {s['objects']} | {100 * vk / max(vn, 1):.1f} % ({vk}/{vn}) | {fc} | "
             f"{_g(s['E'])} / {_g(s['E_g'])} / {_g(s['E_c_mm'])} / {_g(s['pen_mm'])} | "
             f"{_g(s['t2_E'])} / {_g(s['t2_E_g'])} / {_g(s['t2_E_c_mm'])} | "
-            f"{rate(s['success'].get('lift-shake'))} | {rate(s['success'].get('six-dir'))} | {rate(s['both'])} | "
+            f"{rate(s['success'].get('lift-shake'))} | {rate(s['success'].get('six-dir'))} | "
+            + "".join(f"{rate(s['success'].get(p))} | " for p in extra) + f"{rate(s['both'])} | "
             f"{rate(s['top1'])} | {s['yield'][0]} / {s['yield'][1]} | {secs} |")
     none = {s["row"]: s["top1_none"] for s in summarise(report) if s["top1_none"]}
     lines.append("")

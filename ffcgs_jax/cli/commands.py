@@ -15,13 +15,15 @@ import numpy as np
 import tyro
 
 from ffcgs_jax import files
-from ffcgs_jax.cli.dataset_commands import DatasetInfoCmd, run_dataset_build, run_dataset_info
+from ffcgs_jax.cli.dataset_commands import (DatasetExportCmd, DatasetInfoCmd, run_dataset_build, run_dataset_export,
+                                             run_dataset_info)
 from ffcgs_jax.cli.depth_commands import FuseCmd, RenderDepthCmd, run_fuse, run_render_depth
+from ffcgs_jax.cli.show_command import ShowCmd, run_show
 from ffcgs_jax.dataset.config import DatasetConfig
 from ffcgs_jax.errors import FfcgsError
 from ffcgs_jax.geometry.config import SDFConfig
 from ffcgs_jax.physics import protocols as physics_protocols
-from ffcgs_jax.physics.config import PROTOCOLS, PhysicsConfig
+from ffcgs_jax.physics.config import ALL_PROTOCOLS, PROTOCOLS, PhysicsConfig
 from ffcgs_jax.synthesis.config import GraspConfig
 from ffcgs_jax.viz.config import RenderConfig
 
@@ -256,6 +258,7 @@ class GraspCmd:
         out: grasp arrays (.npz; fields in README).
         mcap: also write an MCAP log of the run (config, per-iteration energies, grasps).
         png: also draw the best grasps to this PNG.
+        show: then open the grasps in the interactive 3D view in the browser until Ctrl-C (`ffcgs show`).
         poses: optimise these wrist poses instead of sampling: .npy of shape (B, 4, 4), or .npz with
             `wrist_pose` (e.g. a previous grasps.npz), object frame.
         hand: built-in hand name or a hand-spec TOML.
@@ -269,6 +272,7 @@ class GraspCmd:
     out: str = "grasps.npz"
     mcap: str | None = None
     png: str | None = None
+    show: bool = False
     poses: str | None = None
     hand: str = "svh"
     validate: bool = False
@@ -292,8 +296,8 @@ class GraspCmd:
 def _protocols(name: str) -> tuple[str, ...]:
     if name == "both":
         return PROTOCOLS
-    if name not in PROTOCOLS:
-        raise FfcgsError(f"unknown protocol {name!r}; protocols: {', '.join(PROTOCOLS)}, both")
+    if name not in ALL_PROTOCOLS:
+        raise FfcgsError(f"unknown protocol {name!r}; protocols: {', '.join(ALL_PROTOCOLS)}, both")
     return (name,)
 
 
@@ -349,7 +353,7 @@ def run_grasp(cmd: GraspCmd) -> None:
     _print_rows(rows)
     print(f"wrote {cmd.out}")
     if cmd.mcap:
-        grasp_io.write_mcap(gs, cmd.mcap, hand.spec.name, rows)
+        grasp_io.write_mcap(gs, cmd.mcap, hand, rows, mesh=mesh if mesh is not None else fused.mesh)
         print(f"wrote {cmd.mcap}")
     if cmd.png:
         from ffcgs_jax.viz import grasp_plot, render
@@ -357,6 +361,11 @@ def run_grasp(cmd: GraspCmd) -> None:
         image, _ = grasp_plot.grasps_image(hand, mesh if mesh is not None else fused.mesh, gs)
         render.save_png(image, cmd.png)
         print(f"wrote {cmd.png}")
+    if cmd.show:
+        from ffcgs_jax.cli.show_command import serve
+        from ffcgs_jax.viz import viewer
+
+        serve(viewer.show_grasps(gs, hand, mesh if mesh is not None else fused.mesh), 0.0)
 
 
 def _validate(gs, spec, mesh, cmd: GraspCmd):
@@ -414,7 +423,9 @@ class EvalCmd:
             source, scale and content hash). Another object is refused unless `--other-object`.
         other_object: simulate `--object` even though it is not the object the grasps were made for; the output
             then records what was simulated (physics_object_source, _scale, _sha256).
-        protocol: lift-shake, six-dir or both.
+        protocol: lift-shake, six-dir or both (the two), or DexGraspBench's test: dexgraspbench (100 g, kp 5) or
+            dexgraspbench-bodex (BODex's 30 g, kp 1), which fix their own contacts, mass, gains and bounds
+            (`ffcgs_jax/physics/dexgraspbench.py`; CPU MuJoCo only).
         out: write the npz with results here instead of updating `grasps`.
         video: also record one trial of the first protocol to this .gif or .mp4.
         video_index: which grasp the video shows; default the first valid grasp that passed (else the first).
@@ -509,7 +520,7 @@ def run_eval(cmd: EvalCmd) -> None:
         print(f"wrote {cmd.video} (grasp {pick}, {protocols[0]}, {frames} frames)")
 
 
-def _eval_object(cmd: EvalCmd, data: dict, builtins: list[str]) -> tuple[str, float]:
+def _eval_object(cmd: EvalCmd | ShowCmd, data: dict, builtins: list[str]) -> tuple[str, float]:
     """(object, scale) to simulate: `--object`/`--scale` where given, else what the grasp file records."""
     stored_scale = float(data["object_scale"]) if "object_scale" in data else None
     scale = cmd.scale if cmd.scale is not None else (stored_scale or 1.0)
@@ -543,6 +554,8 @@ COMMANDS: dict[str, tuple[type, Callable]] = {
     "hand": (HandCmd, run_hand),
     "render-depth": (RenderDepthCmd, run_render_depth),
     "fuse": (FuseCmd, run_fuse),
+    "show": (ShowCmd, run_show),
     "dataset build": (DatasetConfig, run_dataset_build),
     "dataset info": (DatasetInfoCmd, run_dataset_info),
+    "dataset export": (DatasetExportCmd, run_dataset_export),
 }

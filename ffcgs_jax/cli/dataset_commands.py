@@ -1,5 +1,5 @@
-"""The dataset subcommands: `ffcgs dataset build` (its options are `dataset.config.DatasetConfig`) and
-`ffcgs dataset info`."""
+"""The dataset subcommands: `ffcgs dataset build` (its options are `dataset.config.DatasetConfig`),
+`ffcgs dataset info` and `ffcgs dataset export`."""
 
 import dataclasses
 import json
@@ -35,6 +35,20 @@ class DatasetInfoCmd:
             raise FfcgsError(f"--per-object must be in [1, 64], got {self.per_object}")
 
 
+@dataclasses.dataclass(frozen=True)
+class DatasetExportCmd:
+    """Write a dataset file's records to numpy .npz, for use without MCAP.
+
+    Attributes:
+        dataset: the .mcap file `ffcgs dataset build` wrote.
+        out: FILE.npz (the records stacked; grasp_start and grasp_record index each record's grasps) or a folder
+            (one <record_id>.npz per record). Fields: ffcgs_jax/dataset/export.py.
+    """
+
+    dataset: tyro.conf.Positional[str] = tyro.MISSING
+    out: str = tyro.MISSING
+
+
 def run_dataset_build(cfg: DatasetConfig) -> None:
     from ffcgs_jax.dataset import build as dataset_build
 
@@ -67,3 +81,11 @@ def run_dataset_info(cmd: DatasetInfoCmd) -> None:
         if skipped:
             print(f"no picture for {len(skipped)} object(s) without grasps or mesh (pass --objects DIR): "
                   f"{', '.join(skipped[:8])}{' ...' if len(skipped) > 8 else ''}")
+
+
+def run_dataset_export(cmd: DatasetExportCmd) -> None:
+    from ffcgs_jax.dataset import export
+
+    r = export.export(cmd.dataset, cmd.out)
+    where = cmd.out if cmd.out.endswith(".npz") else f"{len(r['files'])} files to {cmd.out}"
+    print(f"wrote {where}: {r['records']} records, {r['grasps']} grasps")

@@ -24,8 +24,15 @@ def _usage() -> str:
     lines = ["usage: ffcgs COMMAND [--config FILE.toml] [options]", "", "commands:"]
     for name, (cls, _) in COMMANDS.items():
         lines.append(f"  {name:<14} {(cls.__doc__ or '').strip().splitlines()[0]}")
+    lines.append(f"  {'train':<14} {_train_summary()}")
     lines += ["", "`ffcgs COMMAND --help` lists a command's options."]
     return "\n".join(lines)
+
+
+def _train_summary() -> str:
+    from ffcgs_jax.cli import train_command
+
+    return (train_command.__doc__ or "").strip().splitlines()[0]
 
 
 def parse(argv: list[str]):
@@ -81,6 +88,10 @@ def _interrupted(signum, frame) -> None:
 
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else argv
+    if argv[:1] == ["train"]:  # own parser (--sweep) and messages: `cli.train_command`, as `python -m train.sampler`
+        from ffcgs_jax.cli import train_command
+
+        return train_command.main(argv[1:])
     warnings.showwarning = _one_line_warning  # a user needs the message, not our source line
     previous = signal.signal(signal.SIGINT, _interrupted) if threading.current_thread() is threading.main_thread() \
         else None

@@ -25,7 +25,7 @@ class ShowCmd:
         seconds: serve this many seconds, then exit; 0 (default): until Ctrl-C.
     """
 
-    grasps: tyro.conf.Positional[str]
+    grasps: tyro.conf.Positional[str] = tyro.MISSING
     hand: str | None = None
     object: str | None = None
     scale: float | None = None

@@ -13,14 +13,16 @@ Resumable build (an MCAP cannot be appended to once finished):
       at both ends, are not finished); a build loop skips those and writes the rest.
     * `merge(parts_dir, out_path)` writes the single MCAP (/config, then every record in record-id order) via a
       temporary file + rename. Timestamps are fixed (log_time = record index), message payloads are copied from
-      the parts, so the merged bytes depend only on the set of records and the config: a build interrupted and
-      resumed gives the same file as one done in one go.
+      the parts (re-encoded when a part is in the older "ffcgs.arrays.v1" encoding), so the merged bytes depend only
+      on the set of records and the config: a build interrupted and resumed gives the same file as one done in one
+      go.
     `DatasetWriter` wraps these four calls.
 
 Reading: `iter_records(path)` streams records (one record in memory at a time, reading the MCAP linearly);
 `batches(path, batch_size, seed, shuffle_buffer, epochs)` yields numpy batches pairing each grasp with its record's
-SDF through a bounded shuffle buffer; `summary(path)` counts. This module imports numpy and mcap only (no JAX): call
-`jnp.asarray` on the batches yourself.
+SDF through a bounded shuffle buffer; `summary(path)` counts. Files of either array encoding are read (`schema`).
+Without this package: `decoder.DecoderFactory` with mcap's own reader, or any JSON reader. This module imports numpy
+and mcap only (no JAX): call `jnp.asarray` on the batches yourself.
 """
 
 from __future__ import annotations
@@ -28,6 +30,7 @@ from __future__ import annotations
 import json
 from collections.abc import Iterable, Iterator
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 
@@ -35,11 +38,12 @@ from ffcgs_jax import __version__, files
 from ffcgs_jax.dataset.schema import (
     MESSAGE_ENCODINGS,
     PHYSICS_ARRAYS,
+    READ_ENCODINGS,
     SCHEMAS,
     Record,
     canonical_json,
-    decode_arrays,
-    encode_arrays,
+    decode_message,
+    encode_message,
     record_from,
 )
 from ffcgs_jax.errors import FfcgsError
@@ -49,6 +53,13 @@ _MCAP_MAGIC = b"\x89MCAP0\r\n"
 PART_SUFFIX = ".mcap"
 
 CONFIG_NAME = "config.json"
+
+
+class Payload(NamedTuple):
+    """One message's bytes and its channel's message encoding."""
+
+    encoding: str
+    data: bytes
 
 
 def _new_writer(f, topics):
@@ -65,7 +76,7 @@ def _new_writer(f, topics):
     return w, ch
 
 
-def _iter_messages(path: Path) -> Iterator[tuple[str, bytes]]:
+def _iter_messages(path: Path) -> Iterator[tuple[str, Payload]]:
     """(topic, payload) in file order, streaming; checks the file, schemas and encodings."""
     from mcap.reader import NonSeekingReader
 
@@ -87,15 +98,15 @@ def _iter_messages(path: Path) -> Iterator[tuple[str, bytes]]:
             topic = channel.topic
             if topic not in SCHEMAS:
                 raise FfcgsError(f"{path}: unexpected topic {topic!r} (a dataset has {', '.join(SCHEMAS)})")
-            if (channel.message_encoding != MESSAGE_ENCODINGS[topic] or schema is None
+            if (channel.message_encoding not in READ_ENCODINGS[topic] or schema is None
                     or schema.name != SCHEMAS[topic]["title"] or schema.encoding != "jsonschema"):
                 raise FfcgsError(f"{path}: topic {topic} has message encoding {channel.message_encoding!r} and "
                                  f"schema {getattr(schema, 'name', None)!r}, expected "
-                                 f"{MESSAGE_ENCODINGS[topic]!r} and {SCHEMAS[topic]['title']!r}")
-            yield topic, bytes(message.data)
+                                 f"{' or '.join(map(repr, READ_ENCODINGS[topic]))} and {SCHEMAS[topic]['title']!r}")
+            yield topic, Payload(channel.message_encoding, bytes(message.data))
 
 
-def _pairs(path: Path) -> Iterator[tuple[str, bytes, bytes | None]]:
+def _pairs(path: Path) -> Iterator[tuple[str, Payload, Payload | None]]:
     """Yield ('config', payload, None) and ('record', sdf_payload, grasps_payload) in file order."""
     pending = None
     for topic, data in _iter_messages(path):
@@ -116,11 +127,17 @@ def _pairs(path: Path) -> Iterator[tuple[str, bytes, bytes | None]]:
         raise FfcgsError(f"{path}: last /sdf message has no /grasps message")
 
 
-def _decode_record(path: Path, sdf_data: bytes, grasp_data: bytes, index: int) -> Record:
+def _decode_record(path: Path, sdf: Payload, grasps: Payload, index: int) -> Record:
     what = f"{path} record {index}"
-    sm, sa = decode_arrays(sdf_data, what + " /sdf")
-    gm, ga = decode_arrays(grasp_data, what + " /grasps")
+    sm, sa = decode_message(sdf.data, sdf.encoding, what + " /sdf")
+    gm, ga = decode_message(grasps.data, grasps.encoding, what + " /grasps")
     return record_from(sm, sa, gm, ga, index, what)
+
+
+def _messages(record: Record) -> tuple[bytes, bytes]:
+    """The record's /sdf and /grasps message bytes in the current encoding."""
+    meta = record.meta()
+    return encode_message(meta, record.sdf_arrays()), encode_message(meta, record.grasp_arrays())
 
 
 def parts_dir_for(out_path: str | Path) -> Path:
@@ -159,11 +176,9 @@ def _part_bytes(record: Record) -> bytes:
 
     buf = io.BytesIO()
     w, ch = _new_writer(buf, ("/sdf", "/grasps"))
-    meta = record.meta()
-    w.add_message(ch["/sdf"], log_time=0, publish_time=0, sequence=0,
-                  data=encode_arrays(meta, record.sdf_arrays()))
-    w.add_message(ch["/grasps"], log_time=0, publish_time=0, sequence=0,
-                  data=encode_arrays(meta, record.grasp_arrays()))
+    sdf, grasps = _messages(record)
+    w.add_message(ch["/sdf"], log_time=0, publish_time=0, sequence=0, data=sdf)
+    w.add_message(ch["/grasps"], log_time=0, publish_time=0, sequence=0, data=grasps)
     w.finish()
     return buf.getvalue()
 
@@ -184,8 +199,8 @@ def _is_complete(path: Path) -> bool:
 def write_part(parts_dir: str | Path, record: Record) -> Path:
     """Write one record as `<parts_dir>/<record_id>.mcap`, atomically (temporary file, fsync, rename).
 
-    A finished part with identical bytes makes this a no-op; one with different content is an FfcgsError (the
-    same (object, rotation) written twice with different data)."""
+    A finished part with identical bytes (or the same record in the older encoding) makes this a no-op; one with
+    different content is an FfcgsError (the same (object, rotation) written twice with different data)."""
     parts_dir = Path(parts_dir)
     if not (parts_dir / CONFIG_NAME).is_file():
         raise FfcgsError(f"{parts_dir} is not an initialised parts directory (call init_parts first)")
@@ -194,11 +209,20 @@ def write_part(parts_dir: str | Path, record: Record) -> Path:
     data = _part_bytes(record)
     path = parts_dir / (record.record_id + PART_SUFFIX)
     if _is_complete(path):
-        if path.read_bytes() == data:
+        if path.read_bytes() == data or _reencoded(path) == data:
             return path
         raise FfcgsError(f"record {record.record_id} already has a part {path} with different content")
     files.atomic_write(path, lambda f: f.write(data))
     return path
+
+
+def _reencoded(part: Path) -> bytes | None:
+    """A finished part's bytes as this version writes them (None if it does not hold exactly one good record)."""
+    try:
+        records = list(iter_records(part))
+    except FfcgsError:
+        return None
+    return _part_bytes(records[0]) if len(records) == 1 else None
 
 
 def done_records(parts_dir: str | Path) -> list[str]:
@@ -241,10 +265,12 @@ def merge(parts_dir: str | Path, out_path: str | Path, expected: Iterable[str] |
             pairs = [p for p in _pairs(part) if p[0] == "record"]
             if len(pairs) != 1:
                 raise FfcgsError(f"part {part} holds {len(pairs)} records, expected 1")
-            _, sdf_data, grasp_data = pairs[0]
-            rec = _decode_record(part, sdf_data, grasp_data, i)
+            _, sdf, grasps = pairs[0]
+            rec = _decode_record(part, sdf, grasps, i)
             if rec.record_id != rid:
                 raise FfcgsError(f"part {part} holds record {rec.record_id!r}, not {rid!r}")
+            current = sdf.encoding == MESSAGE_ENCODINGS["/sdf"] and grasps.encoding == MESSAGE_ENCODINGS["/grasps"]
+            sdf_data, grasp_data = (sdf.data, grasps.data) if current else _messages(rec)
             w.add_message(ch["/sdf"], log_time=i, publish_time=i, sequence=i, data=sdf_data)
             w.add_message(ch["/grasps"], log_time=i, publish_time=i, sequence=i, data=grasp_data)
         w.finish()
@@ -282,10 +308,10 @@ class DatasetWriter:
 def read_config(path: str | Path) -> dict:
     """The /config message of a dataset file: {"version", "config", "extra"}."""
     path = Path(path)
-    for kind, data, _ in _pairs(path):
+    for kind, payload, _ in _pairs(path):
         if kind == "config":
             try:
-                return json.loads(data)
+                return json.loads(payload.data)
             except ValueError as e:
                 raise FfcgsError(f"{path}: /config is not JSON: {e}") from None
         break
@@ -296,9 +322,9 @@ def iter_records(path: str | Path) -> Iterator[Record]:
     """Stream the records of a merged dataset file (or a part), in file order, `index` = position."""
     path = Path(path)
     i = 0
-    for kind, sdf_data, grasp_data in _pairs(path):
+    for kind, sdf, grasps in _pairs(path):
         if kind == "record":
-            yield _decode_record(path, sdf_data, grasp_data, i)
+            yield _decode_record(path, sdf, grasps, i)
             i += 1
 
 
@@ -390,11 +416,11 @@ def summary(path: str | Path) -> dict:
     n_records, per_object, splits = 0, {}, {}
     eps, physics = [], {k: [0, 0] for k in PHYSICS_ARRAYS}  # [passed, evaluated]
     config = None
-    for kind, sdf_data, grasp_data in _pairs(path):
+    for kind, first, grasps in _pairs(path):
         if kind == "config":
-            config = json.loads(sdf_data)
+            config = json.loads(first.data)
             continue
-        meta, ga = decode_arrays(grasp_data, f"{path} record {n_records} /grasps")
+        meta, ga = decode_message(grasps.data, grasps.encoding, f"{path} record {n_records} /grasps")
         if "object_name" not in meta or "split" not in meta or "epsilon" not in ga or ga["epsilon"].ndim != 1:
             raise FfcgsError(f"{path} record {n_records}: /grasps message lacks object_name, split or epsilon (G,)")
         g = int(ga["epsilon"].shape[0])

@@ -16,30 +16,47 @@ Records
     hex digits of the name's SHA-256 (so distinct names never collide). Ids are deterministic, unique per
     (object, rotation), usable as file names, and their string order is the record order of the merged file.
 
-MCAP topics (schema encoding "jsonschema"; the schemas are `SCHEMAS` below):
-    /config   one message, message encoding "json": {"version": package version, "config": the build config dict,
-              "extra": anything else passed to `mcap_io.init_parts`}. log_time 0.
-    /sdf      one message per record, message encoding "ffcgs.arrays.v1" (below): meta + arrays grid <f4 (R,R,R,4),
-              origin <f8 (3,), voxel_size <f8 (), table_z <f8 ().
-    /grasps   one message per record, same encoding: meta + arrays wrist_pose <f8 (G,4,4), q <f8 (G,Q),
-              epsilon, E, E_g, E_c <f8 (G,), and if present lift_shake_success, six_dir_success |b1 (G,).
+MCAP topics (every message JSON: message encoding "json", schema encoding "jsonschema"; the schemas are `SCHEMAS`
+below and describe the whole message):
+    /config   one message: {"version": package version, "config": the build config dict, "extra": anything else
+              passed to `mcap_io.init_parts`}. log_time 0.
+    /sdf      one message per record (schema "ffcgs.DatasetSdf"): meta + arrays grid <f4 (R,R,R,4), origin <f8 (3,),
+              voxel_size <f8 (), table_z <f8 ().
+    /grasps   one message per record (schema "ffcgs.DatasetGrasps"): meta + arrays wrist_pose <f8 (G,4,4),
+              q <f8 (G,Q), epsilon, E, E_g, E_c <f8 (G,), and if present wrist_pose_noisy <f8 (G,4,4),
+              lift_shake_success, six_dir_success |b1 (G,).
     Record i (0-based, in record-id order) has its /sdf then its /grasps message, both with log_time = publish_time =
-    sequence = i. The header "meta" of both messages is {"record_id", "object_name", "mesh_sha256",
-    "rotation_index", "rotation" (3x3 nested list), "split"}.
+    sequence = i. The "meta" of both messages is {"record_id", "object_name", "mesh_sha256", "rotation_index",
+    "rotation" (3x3 nested list), "split"} and, when set, "category" and "info".
 
-Message encoding "ffcgs.arrays.v1" (dependency-free, readable with any language):
+Array messages (/sdf, /grasps), a JSON object:
+    {"meta": {...},
+     "arrays": {name: {"dtype": numpy dtype string ("<f4", "<f8", "|b1"),
+                       "shape": [d0, d1, ...],
+                       "data": base64 (RFC 4648, standard alphabet, padded) of the array's raw bytes, C order,
+                               little-endian: prod(shape) * itemsize bytes}}}
+    Any JSON reader reads it (`mcap cat --json`, Foxglove's raw message view); an array is then, in numpy,
+    `np.frombuffer(base64.b64decode(a["data"]), a["dtype"]).reshape(a["shape"])`, which `decoder.DecoderFactory`
+    does for mcap's reader: `mcap.reader.make_reader(f, decoder_factories=[DecoderFactory()])
+    .iter_decoded_messages()` yields each message with its arrays as numpy arrays. Base64 is how Foxglove's own JSON
+    schemas carry bytes (`contentEncoding: base64`). The JSON is compact with sorted keys, so the same record gives
+    the same bytes. No compression inside the message; the MCAP chunks are zstd-compressed.
+
+Older files (read, never written): /sdf and /grasps in message encoding "ffcgs.arrays.v1", whose channel schema
+described only the header:
     bytes [0, 8)      magic b"FFCGSAR1"
     bytes [8, 12)     n = header length, uint32 little-endian
-    bytes [12, 12+n)  header, UTF-8 JSON: {"meta": {...}, "arrays": {name: {"dtype": numpy dtype string e.g. "<f4",
-                      "shape": [...], "offset": byte offset into the data section}}}; the JSON schema of this
-                      header is the channel's schema
+    bytes [12, 12+n)  header, UTF-8 JSON: {"meta": {...}, "arrays": {name: {"dtype", "shape", "offset": byte offset
+                      into the data section}}}
     zero padding to the next multiple of 8, then the data section: each array's raw C-order little-endian bytes at
-    its offset (offsets are multiples of 8). No compression inside the message; the MCAP chunks are zstd-compressed.
-    Encoding is deterministic (sorted JSON keys, fixed array order), so the same record gives the same bytes.
+    its offset (offsets are multiples of 8).
+The readers (`mcap_io`, `decoder.DecoderFactory`) take either encoding, per channel.
 """
 
 from __future__ import annotations
 
+import base64
+import binascii
 import dataclasses
 import hashlib
 import json
@@ -50,12 +67,17 @@ import numpy as np
 
 from ffcgs_jax.errors import FfcgsError
 
-ENCODING = "ffcgs.arrays.v1"
+ARRAYS_ENCODING = "json"
+"""Message encoding of the /sdf and /grasps messages written now (module docstring)."""
+
+LEGACY_ENCODING = "ffcgs.arrays.v1"
+"""Message encoding of /sdf and /grasps in older files: read, never written."""
 
 MAGIC = b"FFCGSAR1"
 
 _META_SCHEMA = {
     "type": "object",
+    "description": "The record's metadata; the same in its /sdf and /grasps messages",
     "properties": {"record_id": {"type": "string"}, "object_name": {"type": "string"},
                    "mesh_sha256": {"type": "string", "pattern": "^[0-9a-f]{64}$"},
                    "rotation_index": {"type": "integer", "minimum": 0},
@@ -63,24 +85,6 @@ _META_SCHEMA = {
                    "split": {"type": "string"}, "category": {"type": "string"}, "info": {"type": "object"}},
     "required": ["record_id", "object_name", "mesh_sha256", "rotation_index", "rotation", "split"],
 }
-
-_ARRAY_SCHEMA = {"type": "object",
-                 "properties": {"dtype": {"type": "string"}, "shape": {"type": "array", "items": {"type": "integer"}},
-                                "offset": {"type": "integer"}},
-                 "required": ["dtype", "shape", "offset"]}
-
-
-def _arrays_schema(title: str, required: list[str], optional: list[str]) -> dict:
-    return {"title": title, "type": "object",
-            "description": f"Header of a message in encoding {ENCODING} (see ffcgs_jax/dataset/schema.py): magic "
-                           "FFCGSAR1, uint32 LE header length, this JSON header, zero padding to 8 bytes, then the "
-                           "raw little-endian C-order arrays at the given offsets of the data section.",
-            "properties": {"meta": _META_SCHEMA,
-                           "arrays": {"type": "object",
-                                      "properties": {k: _ARRAY_SCHEMA for k in required + optional},
-                                      "required": required, "additionalProperties": False}},
-            "required": ["meta", "arrays"]}
-
 
 SDF_ARRAYS = {"grid": "<f4", "origin": "<f8", "voxel_size": "<f8", "table_z": "<f8"}
 
@@ -90,16 +94,48 @@ PHYSICS_ARRAYS = {"lift_shake_success": "|b1", "six_dir_success": "|b1"}
 
 OPTIONAL_GRASP_ARRAYS = {"wrist_pose_noisy": "<f8", **PHYSICS_ARRAYS}
 
+_NDIM = {"grid": 4, "origin": 1, "voxel_size": 0, "table_z": 0, "wrist_pose": 3, "wrist_pose_noisy": 3, "q": 2}
+"""Array ranks (1 where not listed: per-grasp values)."""
+
+
+def _array_schema(name: str, dtype: str) -> dict:
+    n = _NDIM.get(name, 1)
+    return {"type": "object", "additionalProperties": False, "required": ["dtype", "shape", "data"],
+            "description": f"{name}: {n}-D array of numpy dtype {dtype}",
+            "properties": {"dtype": {"const": dtype, "description": "numpy dtype string"},
+                           "shape": {"type": "array", "items": {"type": "integer", "minimum": 0},
+                                     "minItems": n, "maxItems": n},
+                           "data": {"type": "string", "contentEncoding": "base64",
+                                    "description": "base64 of the raw little-endian C-order bytes"}}}
+
+
+def _arrays_schema(title: str, required: dict[str, str], optional: dict[str, str]) -> dict:
+    return {"title": title, "type": "object",
+            "description": "One record's arrays with its metadata (ffcgs_jax/dataset/schema.py): each array as "
+                           "dtype, shape and base64 data; decode with ffcgs_jax.dataset.decoder.DecoderFactory or "
+                           "np.frombuffer(base64.b64decode(data), dtype).reshape(shape)",
+            "properties": {"meta": _META_SCHEMA,
+                           "arrays": {"type": "object",
+                                      "properties": {k: _array_schema(k, d) for k, d in {**required,
+                                                                                        **optional}.items()},
+                                      "required": list(required), "additionalProperties": False}},
+            "required": ["meta", "arrays"], "additionalProperties": False}
+
+
 SCHEMAS = {
     "/config": {"title": "ffcgs.DatasetConfig", "type": "object",
                 "properties": {"version": {"type": "string"}, "config": {"type": "object"},
                                "extra": {"type": "object"}},
                 "required": ["version", "config", "extra"]},
-    "/sdf": _arrays_schema("ffcgs.DatasetSdf", list(SDF_ARRAYS), []),
-    "/grasps": _arrays_schema("ffcgs.DatasetGrasps", list(GRASP_ARRAYS), list(OPTIONAL_GRASP_ARRAYS)),
+    "/sdf": _arrays_schema("ffcgs.DatasetSdf", SDF_ARRAYS, {}),
+    "/grasps": _arrays_schema("ffcgs.DatasetGrasps", GRASP_ARRAYS, OPTIONAL_GRASP_ARRAYS),
 }
 
-MESSAGE_ENCODINGS = {"/config": "json", "/sdf": ENCODING, "/grasps": ENCODING}
+MESSAGE_ENCODINGS = {"/config": "json", "/sdf": ARRAYS_ENCODING, "/grasps": ARRAYS_ENCODING}
+"""What the writer uses; the readers also take LEGACY_ENCODING on /sdf and /grasps."""
+
+READ_ENCODINGS = {"/config": ("json",), "/sdf": (ARRAYS_ENCODING, LEGACY_ENCODING),
+                  "/grasps": (ARRAYS_ENCODING, LEGACY_ENCODING)}
 
 
 def canonical_json(obj, what: str) -> str:
@@ -238,47 +274,70 @@ class Record:
         return out
 
 
-def encode_arrays(meta: dict, arrays: dict[str, np.ndarray]) -> bytes:
-    """Encode a message in "ffcgs.arrays.v1" (module docstring); arrays must already have little-endian dtypes."""
-    descr, blobs, offset = {}, [], 0
+def encode_message(meta: dict, arrays: dict[str, np.ndarray]) -> bytes:
+    """An /sdf or /grasps message (module docstring): compact JSON, sorted keys; arrays must be little-endian."""
+    descr = {}
     for name, a in arrays.items():
         a = np.asarray(a, order="C")
         if a.dtype.byteorder == ">":
             raise FfcgsError(f"array {name} is big-endian; convert to little-endian first")
-        descr[name] = {"dtype": a.dtype.str, "shape": list(a.shape), "offset": offset}
-        raw = a.tobytes()
-        pad = -len(raw) % 8
-        blobs.append(raw + b"\0" * pad)
-        offset += len(raw) + pad
-    header = json.dumps({"meta": meta, "arrays": descr}, sort_keys=True, separators=(",", ":")).encode()
-    head = MAGIC + struct.pack("<I", len(header)) + header
-    return head + b"\0" * (-len(head) % 8) + b"".join(blobs)
+        descr[name] = {"dtype": a.dtype.str, "shape": list(a.shape),
+                       "data": base64.b64encode(a.tobytes()).decode("ascii")}
+    return canonical_json({"meta": meta, "arrays": descr}, "record metadata").encode()
 
 
-def decode_arrays(data: bytes, what: str = "message") -> tuple[dict, dict[str, np.ndarray]]:
-    """Decode "ffcgs.arrays.v1": (meta, {name: array}) with arrays copied out of `data`."""
+def _array(name: str, d: dict, buffer: bytes | None, start: int, what: str, encoding: str) -> np.ndarray:
+    """One array of a message: from its base64 "data" (JSON) or at its "offset" in `buffer` (legacy)."""
+    try:
+        dtype = np.dtype(d["dtype"])
+        shape = tuple(int(s) for s in d["shape"])
+        if dtype.kind not in "biuf" or dtype.byteorder == ">" or any(s < 0 for s in shape):
+            raise ValueError(f"dtype {dtype} / shape {shape} not allowed")
+        count = int(np.prod(shape, dtype=np.int64))
+        if buffer is None:
+            raw = base64.b64decode(d["data"], validate=True)
+            if len(raw) != count * dtype.itemsize:
+                raise ValueError(f"{len(raw)} bytes for shape {shape} of {dtype}")
+            return np.frombuffer(raw, dtype=dtype, count=count).reshape(shape).copy()
+        lo = start + int(d["offset"])
+        if lo < start or lo + count * dtype.itemsize > len(buffer):
+            raise ValueError("extent out of range")
+        return np.frombuffer(buffer, dtype=dtype, count=count, offset=lo).reshape(shape).copy()
+    except (KeyError, TypeError, ValueError, binascii.Error) as e:
+        raise FfcgsError(f"{what}: bad array {name!r} in {encoding} payload: {e}") from None
+
+
+def decode_message(data: bytes, encoding: str = ARRAYS_ENCODING, what: str = "message"
+                   ) -> tuple[dict, dict[str, np.ndarray]]:
+    """(meta, {name: array}) of an /sdf or /grasps message in either encoding, arrays copied out of `data`."""
+    if encoding == LEGACY_ENCODING:
+        return decode_legacy(data, what)
+    if encoding != ARRAYS_ENCODING:
+        raise FfcgsError(f"{what}: unknown message encoding {encoding!r} (expected {ARRAYS_ENCODING!r} or "
+                         f"{LEGACY_ENCODING!r})")
+    try:
+        msg = json.loads(bytes(data))
+        meta, descr = msg["meta"], msg["arrays"]
+        if not isinstance(meta, dict) or not isinstance(descr, dict):
+            raise TypeError("meta and arrays must be objects")
+    except (UnicodeDecodeError, ValueError, KeyError, TypeError) as e:
+        raise FfcgsError(f"{what}: not a readable {SCHEMAS['/sdf']['title']} / {SCHEMAS['/grasps']['title']} "
+                         f"JSON message: {type(e).__name__}: {e}") from None
+    return meta, {name: _array(name, d, None, 0, what, encoding) for name, d in descr.items()}
+
+
+def decode_legacy(data: bytes, what: str = "message") -> tuple[dict, dict[str, np.ndarray]]:
+    """Decode "ffcgs.arrays.v1" (older files; module docstring): (meta, {name: array}) copied out of `data`."""
     if len(data) < 12 or data[:8] != MAGIC:
-        raise FfcgsError(f"{what}: not an {ENCODING} payload (bad magic)")
+        raise FfcgsError(f"{what}: not an {LEGACY_ENCODING} payload (bad magic)")
     (n,) = struct.unpack("<I", data[8:12])
     try:
         header = json.loads(data[12:12 + n].decode())
         meta, descr = header["meta"], header["arrays"]
     except (UnicodeDecodeError, ValueError, KeyError, TypeError) as e:
-        raise FfcgsError(f"{what}: unreadable {ENCODING} header: {type(e).__name__}: {e}") from None
+        raise FfcgsError(f"{what}: unreadable {LEGACY_ENCODING} header: {type(e).__name__}: {e}") from None
     start = 12 + n + (-(12 + n) % 8)
-    arrays = {}
-    for name, d in descr.items():
-        try:
-            dtype = np.dtype(d["dtype"])
-            shape = tuple(int(s) for s in d["shape"])
-            count = int(np.prod(shape, dtype=np.int64))
-            lo = start + int(d["offset"])
-            if dtype.kind not in "biuf" or lo < start or lo + count * dtype.itemsize > len(data):
-                raise ValueError(f"dtype {dtype} / extent out of range")
-            arrays[name] = np.frombuffer(data, dtype=dtype, count=count, offset=lo).reshape(shape).copy()
-        except (KeyError, TypeError, ValueError) as e:
-            raise FfcgsError(f"{what}: bad array {name!r} in {ENCODING} payload: {e}") from None
-    return meta, arrays
+    return meta, {name: _array(name, d, data, start, what, LEGACY_ENCODING) for name, d in descr.items()}
 
 
 def record_from(sdf_meta: dict, sdf_arrays: dict, grasp_meta: dict, grasp_arrays: dict, index: int,

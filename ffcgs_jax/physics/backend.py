@@ -38,16 +38,19 @@ class Segment:
 
 @dataclasses.dataclass
 class Batch:
-    """Per-grasp inputs of a run: wrist pose parts, start and target servo positions."""
+    """Per-grasp inputs of a run: wrist pose parts, start and target servo positions, and for DexGraspBench's
+    protocol the grasp's own q, the waypoint between its pre-grasp (q_start) and squeeze (q_target)."""
 
     wrist_pos: np.ndarray  # (B, 3)
     wrist_quat: np.ndarray  # (B, 4) w x y z
     q_start: np.ndarray  # (B, Q)
     q_target: np.ndarray  # (B, Q)
+    q_grasp: np.ndarray | None = None  # (B, Q), DexGraspBench only
 
     def rows(self, sel) -> "Batch":
         """The grasps at `sel` (a slice or indices), as a Batch."""
-        return Batch(*(np.asarray(getattr(self, f.name))[sel] for f in dataclasses.fields(self)))
+        return Batch(*(None if getattr(self, f.name) is None else np.asarray(getattr(self, f.name))[sel]
+                       for f in dataclasses.fields(self)))
 
 
 @runtime_checkable

@@ -5,13 +5,20 @@ import dataclasses
 from ffcgs_jax.config import check_range
 from ffcgs_jax.errors import FfcgsError
 
-PROTOCOLS = ("lift-shake", "six-dir")  # the physics tests `protocols.run_protocol` implements
+PROTOCOLS = ("lift-shake", "six-dir")  # our physics tests: what `--protocol both` and `evaluate` run by default
+# DexGraspBench's MuJoCo test in its two published versions (`dexgraspbench.VERSIONS`: object mass and servo gain)
+DEXGRASPBENCH = ("dexgraspbench", "dexgraspbench-bodex")
+ALL_PROTOCOLS = PROTOCOLS + DEXGRASPBENCH  # every protocol `protocols.run_protocol` implements
 BACKENDS = ("auto", "cpu", "mjx", "warp")
 
 
 @dataclasses.dataclass(frozen=True)
 class PhysicsConfig:
     """The physics test (`ffcgs eval`): MuJoCo scene, grasp execution and the success rules. Units: SI.
+
+    DexGraspBench's protocols (`DEXGRASPBENCH`) replace the contact, solver, mass, gain, force and bound fields
+    with the benchmark's values (`dexgraspbench.config`); they keep `squeeze`, `contact_band`, the convex
+    decomposition and `workers`.
 
     Attributes:
         backend: the simulator: "auto" (MuJoCo Warp when a CUDA device and the `[warp]` extra are present, else

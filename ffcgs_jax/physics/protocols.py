@@ -2,6 +2,7 @@
 
 `closing` (both protocols), `lift_shake` and `push` (six-dir) turn a `Batch` into `Segment`s; `run_protocol`
 drives a backend (`backend.Simulator`) through them and applies the success rules described in `runner`.
+DexGraspBench's protocols (`dexgraspbench`, described there): `grasp_and_squeeze` and `bench_push`.
 """
 
 import math
@@ -11,8 +12,9 @@ from typing import Any
 import numpy as np
 
 from ffcgs_jax.errors import FfcgsError
+from ffcgs_jax.physics import dexgraspbench as dgb
 from ffcgs_jax.physics.backend import CHUNK, Batch, Segment, Simulator
-from ffcgs_jax.physics.config import PROTOCOLS, PhysicsConfig
+from ffcgs_jax.physics.config import ALL_PROTOCOLS, PhysicsConfig
 
 LIFT_HOLD = 0.25  # seconds of rest between the lift and the shaking
 
@@ -142,8 +144,10 @@ def run_protocol(sim: Simulator, batch: Batch, depth: np.ndarray, cfg: PhysicsCo
     object is `max_slip` or more from its place in the palm (dropped: its move and rot are then those of that
     moment); in six-dir a grasp that lost the object while closing is not pushed, and one that moved or turned
     past a bound in some direction is not pushed further (directions not pushed: NaN in move_dir / rot_dir)."""
-    if protocol not in PROTOCOLS:
-        raise FfcgsError(f"unknown protocol {protocol!r}; protocols: {', '.join(PROTOCOLS)}")
+    if protocol not in ALL_PROTOCOLS:
+        raise FfcgsError(f"unknown protocol {protocol!r}; protocols: {', '.join(ALL_PROTOCOLS)}")
+    if dgb.is_bench(protocol):
+        return _run_bench(sim, batch, depth, dgb.config(cfg, protocol))
     b = len(depth)
     bad_start = depth > cfg.max_initial_penetration
     flagged = np.zeros(b, bool)
@@ -203,6 +207,83 @@ def run_protocol(sim: Simulator, batch: Batch, depth: np.ndarray, cfg: PhysicsCo
     return dict(success=~(bad_start | lost | moved), reason=_reason(bad_start, lost, moved), move=move, rot=rot,
                 move_dir=move_dir, rot_dir=rot_dir, flagged=flagged)
 
+
+
+def grasp_and_squeeze(batch: Batch, cfg: PhysicsConfig) -> list[Segment]:
+    """DexGraspBench's execution: servo targets from the pre-grasp (`q_start`) to the grasp (`q_grasp`), then to the
+    squeeze (`q_target`), each stage `dgb.STAGE_TIME` long in `dgb.WAYPOINTS` equal steps held constant (the
+    first step already moves: the targets at the end of step k of K are k/K of the way)."""
+    if batch.q_grasp is None:
+        raise FfcgsError("DexGraspBench's protocol needs the grasps' q (Batch.q_grasp): prepare them on its scene")
+    n = _steps(dgb.STAGE_TIME, cfg.timestep)
+    zero = np.zeros((1, 3))
+
+    def stage(a: np.ndarray, b: np.ndarray) -> Segment:
+        def make(i0, i1):
+            k = (np.floor(np.arange(i0, i1) * dgb.WAYPOINTS / n) + 1) / dgb.WAYPOINTS
+            return a[:, None] + k[None, :, None] * (b - a)[:, None], zero
+
+        return Segment(n, make)
+
+    return [stage(batch.q_start, batch.q_grasp), stage(batch.q_grasp, batch.q_target)]
+
+
+def bench_push(batch: Batch, cfg: PhysicsConfig, direction: np.ndarray, mass: float) -> Segment:
+    """DexGraspBench's push: `cfg.accel` x mass along `direction` for `cfg.push_time`, targets held at the squeeze."""
+    zero = np.zeros((1, 3))
+    return Segment(_steps(cfg.push_time, cfg.timestep), lambda i0, i1: (batch.q_target[:, None], zero),
+                   force=cfg.accel * mass * direction)
+
+
+def _pieces(seg: Segment, k: int) -> list[Segment]:
+    """A segment of constant control as consecutive segments of at most k steps (a check after each)."""
+    return [Segment(min(k, seg.n - i), seg.make, seg.force, seg.hold) for i in range(0, seg.n, k)]
+
+
+def _run_bench(sim: Simulator, batch: Batch, depth: np.ndarray, cfg: PhysicsConfig) -> dict[str, np.ndarray]:
+    """DexGraspBench's test (`dexgraspbench`; `cfg` from `dexgraspbench.config`): grasp and squeeze from the
+    pre-grasp once, then from that state each direction's push, the object's pose compared every
+    `dgb.CHECK_TIME` with its pose at the pre-grasp; a grasp leaves at its first failing check. Returns the
+    arrays of `run_protocol` with move_dir / rot_dir (B, 6): the largest move and turn over each direction's
+    checks (NaN where not pushed). Reasons: penetration (at the pre-grasp), lost (failed and no hand contact after
+    the squeeze), slip (failed otherwise)."""
+    b = len(depth)
+    bad_start = depth > cfg.max_initial_penetration
+    flagged = np.zeros(b, bool)
+    move, rot = np.full(b, np.nan), np.full(b, np.nan)
+    move_dir, rot_dir = np.full((b, 6), np.nan), np.full((b, 6), np.nan)
+    lost = np.zeros(b, bool)
+    failed = bad_start.copy()
+    idx = np.flatnonzero(~bad_start)
+    if len(idx):
+        start = sim.initial(batch.rows(idx))
+        ref = {k: _scatter(v, idx, b) for k, v in sim.probe(start, batch.rows(idx)).items()}  # at the pre-grasp
+        squeezed, _ = _drive(sim, start, batch, idx, grasp_and_squeeze(batch, cfg), flagged)
+        lost[idx] = ~sim.probe(squeezed, batch.rows(idx))["touch"]
+        where = np.zeros(b, np.int64)
+        where[idx] = np.arange(len(idx))  # row of each grasp in the squeezed states
+        every = _steps(dgb.CHECK_TIME, cfg.timestep)
+        for k, direction in enumerate(DIRECTIONS):
+            rows = np.flatnonzero(~failed)
+            if len(rows) == 0:
+                break
+            move_dir[rows, k], rot_dir[rows, k] = 0.0, 0.0
+
+            def checked(state, rows, k=k):
+                p = sim.probe(state, batch.rows(rows))
+                move_dir[rows, k] = np.maximum(move_dir[rows, k], np.linalg.norm(p["pos"] - ref["pos"][rows], axis=1))
+                rot_dir[rows, k] = np.maximum(rot_dir[rows, k], _angle(p["quat"], ref["quat"][rows]))
+                out = (move_dir[rows, k] >= cfg.max_move) | (rot_dir[rows, k] >= cfg.max_rot_deg)
+                failed[rows[out]] = True
+                return ~out
+
+            _drive(sim, sim.take(squeezed, where[rows]), batch, rows,
+                   _pieces(bench_push(batch, cfg, direction, sim.scene.mass), every), flagged, checked)
+    tried = ~np.isnan(move_dir).all(axis=1)
+    move[tried], rot[tried] = np.nanmax(move_dir[tried], axis=1), np.nanmax(rot_dir[tried], axis=1)
+    moved = failed & ~bad_start
+    return dict(success=~failed, reason=_reason(bad_start, moved & lost, moved), move=move, rot=rot,
+                move_dir=move_dir, rot_dir=rot_dir, flagged=flagged)
 
 
 def _scatter(values: np.ndarray, idx: np.ndarray, b: int) -> np.ndarray:

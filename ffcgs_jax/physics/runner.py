@@ -22,6 +22,10 @@ Execution of one grasp (all grasps of a batch in parallel):
      the object moves less than `max_move` and turns less than `max_rot_deg` (largest over the push, sampled every
      `backend.CHUNK` steps and at its end).
 
+DexGraspBench's MuJoCo test (`dexgraspbench`, `dexgraspbench-bodex`; `dexgraspbench` describes it and how it
+differs from the benchmark's code) has its own scene and execution: gravity off, the hand from a pre-grasp through
+the grasp to a squeeze, then 10 x mass along each of the six directions for 2 s; < 5 cm and < 15 degrees.
+
 Failure modes are recorded per grasp (`reason`): penetration; lost (no hand contact left: dropped or pushed out
 while closing); slip (still touched but moved past the bound). A grasp stops being simulated as soon as its
 failure is certain (`protocols.run_protocol`: penetration at the start, dropped during lift-shake, past a bound in
@@ -33,6 +37,7 @@ grasps, no Python per step) or MuJoCo Warp (`backend_warp`, grasps as worlds on 
 rules are in `protocols`, the backends' interface in `backend`.
 """
 
+import dataclasses
 import os
 from collections.abc import Callable
 
@@ -43,10 +48,11 @@ import trimesh
 from ffcgs_jax.errors import FfcgsError
 from ffcgs_jax.hand.spec import HandSpec
 from ffcgs_jax.physics import convex
+from ffcgs_jax.physics import dexgraspbench as dgb
 from ffcgs_jax.physics import scene as physics_scene
 from ffcgs_jax.physics.backend import Batch, mat_to_quat, pose_hand
 from ffcgs_jax.physics.backend_cpu import GROUP_PER_THREAD, CpuSim
-from ffcgs_jax.physics.config import BACKENDS, PROTOCOLS, PhysicsConfig
+from ffcgs_jax.physics.config import ALL_PROTOCOLS, BACKENDS, PROTOCOLS, PhysicsConfig
 from ffcgs_jax.physics.protocols import result_key, run_protocol
 from ffcgs_jax.physics.scene import PhysicsScene
 
@@ -77,11 +83,15 @@ def resolve_backend(name: str, n: int | None = None) -> tuple[str, str | None]:
 
 def scenes(spec: HandSpec, mesh: trimesh.Trimesh, cfg: PhysicsConfig, protocols, table_z: float | None = None
            ) -> dict[str, PhysicsScene]:
-    """One compiled scene per protocol (lift-shake: gravity and table; six-dir: neither)."""
+    """One compiled scene per protocol (lift-shake: gravity and table; six-dir: neither; DexGraspBench's: its
+    own contacts and solver, `dexgraspbench.config`)."""
     parts = convex.decompose(mesh, cfg)
     tz = float(mesh.bounds[0, 2]) if table_z is None else table_z
     out = {}
     for p in protocols:
+        if dgb.is_bench(p):
+            out[p] = physics_scene.build(spec, mesh, parts, dgb.config(cfg, p), gravity=False, dexgraspbench=True)
+            continue
         lift = p == "lift-shake"
         out[p] = physics_scene.build(spec, mesh, parts, cfg, gravity=lift, table_z=tz if lift else None,
                                      hold=not lift)
@@ -103,11 +113,34 @@ def check_inputs(scene: PhysicsScene, wrist_pose, q) -> tuple[np.ndarray, np.nda
 
 
 
+@dataclasses.dataclass(frozen=True)
+class _Grasps:
+    """The grasps as `_grasps` reads them: wrist (B, 3) and (B, 4), q (B, Q) within the limits, the squeeze direction
+    (B, Q), and at q the penetration depth (B,) and palm contact (B,)."""
+
+    pos: np.ndarray
+    quat: np.ndarray
+    q: np.ndarray
+    direction: np.ndarray
+    depth: np.ndarray
+    palm: np.ndarray
+
+
 def prepare(scene: PhysicsScene, mesh: trimesh.Trimesh, wrist_pose, q, cfg: PhysicsConfig, squeeze_dir=None
             ) -> tuple[Batch, np.ndarray, np.ndarray]:
     """Servo start/target per grasp, the initial hand-object penetration depth (B,) at q (MuJoCo contact depth,
     metres, >= 0) and whether the palm touches the object at q (B,). `squeeze_dir` (B, Q), e.g. a grasp file's,
-    replaces the squeeze direction computed here from the fingertips within `cfg.contact_band`."""
+    replaces the squeeze direction computed here from the fingertips within `cfg.contact_band`.
+
+    On DexGraspBench's scene (`scene.dexgraspbench`) the batch is the benchmark's plan (`_plan`: start at the
+    pre-grasp, q_grasp, target at the squeeze) and the depth is the one at the pre-grasp, which the benchmark checks."""
+    grasps = _grasps(scene, mesh, wrist_pose, q, cfg, squeeze_dir)
+    batch, depth = _plan(scene, grasps, cfg)
+    return batch, depth, grasps.palm
+
+
+def _grasps(scene: PhysicsScene, mesh: trimesh.Trimesh, wrist_pose, q, cfg: PhysicsConfig, squeeze_dir=None
+            ) -> _Grasps:
     from ffcgs_jax.evaluation.metrics import mesh_contacts, squeeze_direction
 
     T, qq = check_inputs(scene, wrist_pose, q)
@@ -138,10 +171,34 @@ def prepare(scene: PhysicsScene, mesh: trimesh.Trimesh, wrist_pose, q, cfg: Phys
         direction = squeeze_direction(jac, normals, np.abs(signed) <= cfg.contact_band)
     else:
         direction = squeeze_dir
-    target = np.clip(qq + cfg.squeeze * direction, scene.lower, scene.upper)
+    return _Grasps(T[:, :3, 3].copy(), quat, qq, direction, depth, palm)
+
+
+def _plan(scene: PhysicsScene, grasps: _Grasps, cfg: PhysicsConfig) -> tuple[Batch, np.ndarray]:
+    """The servo plan of every grasp on `scene` and the penetration depth (B,) its protocol checks at the start.
+
+    Ours: from the open hand (`open_fraction`) to q + squeeze x direction; depth at q. DexGraspBench's: from the
+    pre-grasp q - squeeze x direction through q to the squeeze q + squeeze x direction (`dexgraspbench`), the wrist
+    at the grasp's pose throughout; depth at the pre-grasp."""
+    g = grasps
+    target = np.clip(g.q + cfg.squeeze * g.direction, scene.lower, scene.upper)
+    if scene.dexgraspbench:
+        pre = np.clip(g.q - cfg.squeeze * g.direction, scene.lower, scene.upper)
+        return Batch(g.pos, g.quat, pre, target, g.q), _depths(scene, g.pos, g.quat, pre)
     q_open = np.clip(0.0, scene.lower, scene.upper)  # where the synthesis starts: q = 0 within the limits
-    start = q_open + (1.0 - cfg.open_fraction) * (qq - q_open)
-    return Batch(T[:, :3, 3].copy(), quat, start, target), depth, palm
+    start = q_open + (1.0 - cfg.open_fraction) * (g.q - q_open)
+    return Batch(g.pos, g.quat, start, target), g.depth
+
+
+def _depths(scene: PhysicsScene, pos: np.ndarray, quat: np.ndarray, q: np.ndarray) -> np.ndarray:
+    """Deepest hand-object penetration (m, >= 0) of each grasp with the hand at (pos, quat, q)."""
+    d = mujoco.MjData(scene.model)
+    out = np.zeros(len(q))
+    for g in range(len(q)):
+        pose_hand(scene, d, pos[g], quat[g], q[g])
+        mujoco.mj_forward(scene.model, d)
+        out[g] = _contact_state(scene, d)[0]
+    return out
 
 
 
@@ -172,25 +229,38 @@ def evaluate(spec: HandSpec, mesh: trimesh.Trimesh, wrist_pose, q, cfg: PhysicsC
     contacts or constraints overflowed their buffers are run again on the CPU (`physics_rerun_cpu` marks them).
     Returns flat per-grasp arrays for an npz: initial_penetration, palm_contact and, per protocol p (with '-'
     written '_'), p_success, p_reason (index into protocols.REASONS), p_move (m), p_rot (degrees) and for six-dir
-    six_dir_move_dir, six_dir_rot_dir (B, 6)."""
+    and DexGraspBench's protocols p_move_dir, p_rot_dir (B, 6); for DexGraspBench's also p_pregrasp_penetration (m,
+    the depth its penetration rule reads).
+
+    DexGraspBench's protocols (`dexgraspbench`) run on CPU MuJoCo only: with `cfg.backend` "auto" they do so
+    whatever `backend` resolved to; an explicit "warp" or "mjx" is refused before anything is simulated."""
     cfg.check()
     protocols = tuple(protocols)
     for p in protocols:
-        if p not in PROTOCOLS:
-            raise FfcgsError(f"unknown protocol {p!r}; protocols: {', '.join(PROTOCOLS)}")
+        if p not in ALL_PROTOCOLS:
+            raise FfcgsError(f"unknown protocol {p!r}; protocols: {', '.join(ALL_PROTOCOLS)}")
     if len(np.asarray(q).reshape(-1)) == 0:
         raise FfcgsError("no grasps to test")
-    backend, _ = resolve_backend(cfg.backend if backend is None else backend, int(np.shape(q)[0]))
+    asked = cfg.backend if backend is None else backend
+    backend, _ = resolve_backend(asked, int(np.shape(q)[0]))
+    bench = [p for p in protocols if dgb.is_bench(p)]
+    if bench and backend != "cpu" and "auto" not in (asked, cfg.backend):
+        raise FfcgsError(f"protocol {bench[0]} runs on the CPU backend only (MuJoCo's no-slip solver, which "
+                         f"{backend} lacks): use --backend cpu or auto")
     tick = progress or (lambda n: None)
     built = scenes(spec, mesh, cfg, protocols, table_z)
-    # the scenes differ only in gravity, table and the hold weld, none of which the hand-object contacts, the
-    # fingertip Jacobians or the squeeze target depend on: prepare once
-    batch, depth, palm = prepare(built[protocols[0]], mesh, wrist_pose, q, cfg, squeeze_dir)
-    out: dict[str, np.ndarray] = {"initial_penetration": depth, "palm_contact": palm}
-    if backend == "warp":  # the others have no buffers to overflow
-        out["physics_rerun_cpu"] = np.zeros(len(depth), bool)
+    # the scenes differ only in gravity, table, the hold weld and contact softness and friction, none of which the
+    # hand-object contacts, the fingertip Jacobians or the squeeze direction depend on: read the grasps once
+    grasps = _grasps(built[protocols[0]], mesh, wrist_pose, q, cfg, squeeze_dir)
+    out: dict[str, np.ndarray] = {"initial_penetration": grasps.depth, "palm_contact": grasps.palm}
+    if backend == "warp" and len(bench) < len(protocols):  # the others have no buffers to overflow
+        out["physics_rerun_cpu"] = np.zeros(len(grasps.depth), bool)
     for p, scene in built.items():
-        if backend == "cpu":
+        pcfg = dgb.config(cfg, p) if dgb.is_bench(p) else cfg
+        batch, depth = _plan(scene, grasps, pcfg)
+        if dgb.is_bench(p):
+            out[result_key(p, "pregrasp_penetration")] = depth
+        if backend == "cpu" or dgb.is_bench(p):
             sim = CpuSim(scene, cfg.workers)
             group = GROUP_PER_THREAD * sim.nthread
         elif backend == "mjx":
@@ -205,10 +275,10 @@ def evaluate(spec: HandSpec, mesh: trimesh.Trimesh, wrist_pose, q, cfg: PhysicsC
         parts = []
         for i in range(0, len(depth), group):
             rows = slice(i, i + group)
-            part = run_protocol(sim, batch.rows(rows), depth[rows], cfg, p)
+            part = run_protocol(sim, batch.rows(rows), depth[rows], pcfg, p)
             flagged = part.pop("flagged")
             if flagged.any():
-                part = _rerun_on_cpu(scene, cfg, p, batch.rows(rows), depth[rows], part, flagged)
+                part = _rerun_on_cpu(scene, pcfg, p, batch.rows(rows), depth[rows], part, flagged)
                 out["physics_rerun_cpu"][rows] |= flagged
             parts.append(part)
             tick(len(depth[rows]))

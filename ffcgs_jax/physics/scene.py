@@ -11,6 +11,10 @@
 Collision bits: hand geoms contype 2 / conaffinity 1 (no self-collision, as in the MJCF), object contype 1 /
 conaffinity 2, table contype 1 / conaffinity 3, so hand-object, hand-table and object-table pairs collide.
 Object and table geoms carry `friction`, `condim` and priority 1, so their values rule every contact they are in.
+
+`dexgraspbench=True` builds DexGraspBench's scene instead (`dexgraspbench`): no-slip solver, every hand geom with
+the benchmark's friction, condim and stiffer contacts, the object's geoms at priority 0 (MuJoCo mixes the two per
+contact, as the benchmark's scene does) and the wrist weld at MuJoCo's default softness.
 """
 
 import dataclasses
@@ -21,6 +25,7 @@ import trimesh
 
 from ffcgs_jax.errors import FfcgsError
 from ffcgs_jax.hand.spec import HandSpec
+from ffcgs_jax.physics import dexgraspbench as dgb
 from ffcgs_jax.physics.config import PhysicsConfig
 from ffcgs_jax.viz.scene import OBJECT_RGBA, TABLE_RGBA
 
@@ -44,6 +49,8 @@ class PhysicsScene:
         tip_sites: site ids of the fingertip contact points.
         lower, upper: (Q,) channel limits.
         mass: the object's mass, kg.
+        dexgraspbench: DexGraspBench's scene (`build(..., dexgraspbench=True)`): `runner.prepare` then plans the
+            benchmark's pre-grasp, grasp and squeeze.
     """
 
     model: mujoco.MjModel
@@ -62,19 +69,28 @@ class PhysicsScene:
     lower: np.ndarray
     upper: np.ndarray
     mass: float
+    dexgraspbench: bool = False
 
 
 def build(spec: HandSpec, mesh: trimesh.Trimesh, parts: list[tuple[np.ndarray, np.ndarray]],
           cfg: PhysicsConfig = PhysicsConfig(), *, gravity: bool = True, table_z: float | None = None,
-          hold: bool = False) -> PhysicsScene:
+          hold: bool = False, dexgraspbench: bool = False) -> PhysicsScene:
     """Compile the scene. `parts`: convex pieces from `convex.decompose(mesh)`; table_z None = no table;
-    hold: add a weld of the object to the world (`hold_eq`) that the protocol switches on and off."""
+    hold: add a weld of the object to the world (`hold_eq`) that the protocol switches on and off;
+    dexgraspbench: DexGraspBench's contacts and solver (with `dexgraspbench.config(cfg, ...)`, no gravity)."""
     s = mujoco.MjSpec.from_file(spec.mjcf_path)
     s.option.timestep = cfg.timestep
     s.option.cone = mujoco.mjtCone.mjCONE_ELLIPTIC if cfg.cone == "elliptic" else mujoco.mjtCone.mjCONE_PYRAMIDAL
     s.option.impratio = cfg.impratio
     s.option.integrator = mujoco.mjtIntegrator.mjINT_IMPLICITFAST
     s.option.gravity = [0.0, 0.0, -9.81 if gravity else 0.0]
+    if dexgraspbench:
+        s.option.noslip_iterations = dgb.NOSLIP_ITERATIONS
+        for g in s.geoms:  # the hand's, before the object and table are added
+            g.friction[:2] = [cfg.friction, cfg.torsional]
+            g.condim = cfg.condim
+            g.solref[:2] = dgb.HAND_SOLREF
+            g.solimp[:3] = dgb.HAND_SOLIMP
     root = s.body(spec.root_body)
     if root is None:
         raise FfcgsError(f"hand MJCF has no root body {spec.root_body!r}")
@@ -94,7 +110,9 @@ def build(spec: HandSpec, mesh: trimesh.Trimesh, parts: list[tuple[np.ndarray, n
     weld = s.add_equality()
     weld.type, weld.objtype = mujoco.mjtEq.mjEQ_WELD, mujoco.mjtObj.mjOBJ_BODY
     weld.name1, weld.name2 = spec.root_body, "wrist_target"
-    weld.solref = [WELD_TIMECONST, 1.0]
+    weld.solref = list(dgb.WELD_SOLREF) if dexgraspbench else [WELD_TIMECONST, 1.0]
+    if dexgraspbench:  # anchor at the root's origin, relative pose from the compiled model, torquescale 1
+        weld.data = [0.0] * 10 + [1.0] + [0.0] * (len(weld.data) - 11)
     _gravcomp(root)
     for a in s.actuators if cfg.kp > 0 else ():  # position servo: force = kp (ctrl - q)
         a.gainprm[0] = cfg.kp
@@ -115,7 +133,7 @@ def build(spec: HandSpec, mesh: trimesh.Trimesh, parts: list[tuple[np.ndarray, n
         g = body.add_geom()
         g.name, g.type, g.meshname = f"object_{i}", mujoco.mjtGeom.mjGEOM_MESH, m.name
         g.rgba, g.contype, g.conaffinity = OBJECT_RGBA, 1, 2
-        _contact(g, cfg)
+        _contact(g, cfg, priority=0 if dexgraspbench else 1)
     if hold:
         eq = s.add_equality()
         eq.type, eq.objtype, eq.name, eq.name1 = mujoco.mjtEq.mjEQ_WELD, mujoco.mjtObj.mjOBJ_BODY, "hold", "object"
@@ -154,6 +172,7 @@ def build(spec: HandSpec, mesh: trimesh.Trimesh, parts: list[tuple[np.ndarray, n
         lower=np.asarray(spec.lower, np.float64),
         upper=np.asarray(spec.upper, np.float64),
         mass=mass,
+        dexgraspbench=dexgraspbench,
     )
 
 
@@ -164,10 +183,10 @@ def _gravcomp(body) -> None:
         _gravcomp(child)
 
 
-def _contact(g, cfg: PhysicsConfig) -> None:
+def _contact(g, cfg: PhysicsConfig, priority: int = 1) -> None:
     g.friction = [cfg.friction, cfg.torsional, ROLLING]
     g.condim = cfg.condim
-    g.priority = 1
+    g.priority = priority
 
 
 def _subtree(model: mujoco.MjModel, root: int) -> np.ndarray:

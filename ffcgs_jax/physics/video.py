@@ -6,7 +6,8 @@ applies them:
 before every step the servo targets (ctrl), the wrist target (mocap: the grasp's wrist position plus the segment's
 offset, its orientation), the force on the object (`xfrc_applied`, zero when the segment has none) and whether the
 object is held in place (six-dir's `hold_eq` weld while closing). For six-dir every push starts again from the
-closed state, as in `protocols.run_protocol`. The replay is of the same plan, not
+closed state, as in `protocols.run_protocol`; DexGraspBench's protocols (`dexgraspbench`) show grasp, squeeze and
+each push from the squeezed state. The replay is of the same plan, not
 bit-for-bit the batch run: `mujoco.rollout` restarts its solver's warm start every `backend.CHUNK` steps.
 
 A frame is drawn every 1/fps seconds of simulated time (so the video plays in real time) from one fixed camera,
@@ -28,8 +29,9 @@ from PIL import Image, ImageDraw, ImageFont
 from ffcgs_jax import files
 from ffcgs_jax.errors import FfcgsError
 from ffcgs_jax.physics import backend as physics_backend
+from ffcgs_jax.physics import dexgraspbench as dgb
 from ffcgs_jax.physics import protocols as physics_protocols
-from ffcgs_jax.physics.config import PROTOCOLS, PhysicsConfig
+from ffcgs_jax.physics.config import ALL_PROTOCOLS, PhysicsConfig
 from ffcgs_jax.physics.scene import PhysicsScene
 from ffcgs_jax.viz import render
 
@@ -44,8 +46,14 @@ _RESTART = mujoco.mjtState.mjSTATE_INTEGRATION  # everything a step reads: the p
 def phases(scene: PhysicsScene, batch: physics_backend.Batch, cfg: PhysicsConfig, protocol: str
            ) -> list[tuple[str, physics_backend.Segment, bool]]:
     """The protocol as (label, segment, starts again from the closed state) in order."""
-    if protocol not in PROTOCOLS:
-        raise FfcgsError(f"unknown protocol {protocol!r}; protocols: {', '.join(PROTOCOLS)}")
+    if protocol not in ALL_PROTOCOLS:
+        raise FfcgsError(f"unknown protocol {protocol!r}; protocols: {', '.join(ALL_PROTOCOLS)}")
+    if dgb.is_bench(protocol):
+        cfg = dgb.config(cfg, protocol)
+        grasp, squeeze = physics_protocols.grasp_and_squeeze(batch, cfg)
+        return [("grasp", grasp, False), ("squeeze", squeeze, False)] + [
+            (f"push {name}", physics_protocols.bench_push(batch, cfg, direction, scene.mass), True)
+            for name, direction in zip(DIRECTION_NAMES, physics_protocols.DIRECTIONS, strict=True)]
     close, settle = physics_protocols.closing(batch, cfg)
     out = [("closing", close, False), ("settle", settle, False)]
     if protocol == "lift-shake":
@@ -59,6 +67,7 @@ def phases(scene: PhysicsScene, batch: physics_backend.Batch, cfg: PhysicsConfig
 def frame_count(scene: PhysicsScene, batch: physics_backend.Batch, cfg: PhysicsConfig, protocol: str, fps: float | int,
                 max_seconds: float | int | None = None) -> int:
     """How many frames `record` writes (the first, at time 0, included), e.g. for a progress bar's total."""
+    cfg = dgb.config(cfg, protocol) if dgb.is_bench(protocol) else cfg
     steps = sum(seg.n for _, seg, _ in phases(scene, batch, cfg, protocol))
     if max_seconds is not None:
         steps = min(steps, _step_limit(max_seconds, cfg.timestep))
@@ -75,7 +84,7 @@ def record(scene: PhysicsScene, batch: physics_backend.Batch, index: int, cfg: P
         scene: the protocol's compiled scene (`runner.scenes(...)[protocol]`).
         batch, index: the grasps and which one to film.
         cfg: the physics settings the batch was prepared with.
-        protocol: "lift-shake" or "six-dir".
+        protocol: one of `config.ALL_PROTOCOLS` (DexGraspBench's use their own timestep, as `runner.scenes`).
         path: the video file: `.gif` or `.mp4` (needs `pip install imageio-ffmpeg`); its folder is created, and it
             is written atomically (an interrupted recording leaves no partial file).
         fps: frames per simulated second (the video plays in real time); default 15 for GIF, 30 for MP4.
@@ -90,6 +99,7 @@ def record(scene: PhysicsScene, batch: physics_backend.Batch, index: int, cfg: P
     Returns:
         The number of frames written.
     """
+    cfg = dgb.config(cfg, protocol) if dgb.is_bench(protocol) else cfg
     path = Path(path)
     suffix = path.suffix.lower()
     if suffix not in FORMATS:
@@ -180,7 +190,7 @@ def _write(path, suffix, fps, width, height, m, d, cameras, backend, reach, plan
                         step += 1
                         if _due(step, cfg.timestep, fps) > _due(step - 1, cfg.timestep, fps):
                             shoot(label)
-                if label == "settle":
+                if label in ("settle", "squeeze"):  # the closed state the pushes start from
                     mujoco.mj_getState(m, d, closed, _RESTART)
         writer.close()
     except BaseException:

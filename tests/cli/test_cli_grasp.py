@@ -15,7 +15,7 @@ from PIL import Image
 from ffcgs_jax.cli import main as cli_main
 from ffcgs_jax.synthesis import grasp_io
 
-from mcap_checks import read_raw, schema_errors
+from mcap_checks import check_run_log
 
 N, ITERS = 4, 5
 SMALL = ["--n", str(N), "--iters", str(ITERS), "--res", "16"]
@@ -60,16 +60,15 @@ def test_grasp_npz(outputs):
 
 
 def test_grasp_mcap(outputs):
+    """The log of a real run plays in Foxglove: scene, transforms, hands and /energy on a real timeline
+    (mcap_checks.check_run_log), and its numbers are the run's."""
     a = grasp_io.load_npz(outputs[3]["npz"])
-    msgs, meta = read_raw(outputs[3]["mcap"])
-    assert {k: len(v) for k, v in msgs.items()} == {"/config": 1, "/iteration": ITERS + 1, "/grasp": N,
-                                                     "/summary": 1}
-    for topic, (encoding, schema, _) in meta.items():
-        assert encoding == "jsonschema"
-        for m in msgs[topic]:
-            assert schema_errors(m, schema) == [], (topic, m)
-    assert all(len(m["E"]) == N for m in msgs["/iteration"])
-    np.testing.assert_allclose(msgs["/iteration"][-1]["E"], a["E"], rtol=1e-15)
+    order = np.lexsort((np.arange(N), a["E"], ~a["valid"]))  # GraspSet.order
+    msgs = check_run_log(outputs[3]["mcap"], a, order, ITERS + 1)
+    assert {k: len(v) for k, v in msgs.items()} == {"/config": 1, "/scene": 1, "/tf": 1, "/energy": ITERS + 1,
+                                                     "/grasp": N, "/summary": 1, **{f"/hand/{k}": 1 for k in range(4)}}
+    assert all(len(m["E"]) == N for m in msgs["/energy"])
+    np.testing.assert_allclose(msgs["/energy"][-1]["E"], a["E"], rtol=1e-15)
     for i, m in enumerate(msgs["/grasp"]):
         np.testing.assert_allclose(np.asarray(m["wrist_pose"]), a["wrist_pose"][i], rtol=1e-15)
         assert m["valid"] == bool(a["valid"][i])

@@ -102,7 +102,7 @@ def test_merged_file_layout(dataset):
     rest = msgs[1:]
     assert [t for t, *_ in rest] == ["/sdf", "/grasps"] * len(recs)
     assert [lt for *_, lt in rest] == [i for i in range(len(recs)) for _ in range(2)]
-    assert all(e == schema.ENCODING for _, e, _, _ in rest)
+    assert all(e == schema.ARRAYS_ENCODING == "json" for _, e, _, _ in rest)
 
 
 def test_resume_after_crash_equals_one_go(tmp_path, dataset):
@@ -251,7 +251,7 @@ def test_bad_input(tmp_path, dataset):
         ch = w.register_channel(topic="/sdf", message_encoding="json", schema_id=sid)
         w.add_message(ch, log_time=0, publish_time=0, data=b"{}")
         w.finish()
-    with pytest.raises(FfcgsError, match="expected 'ffcgs.arrays.v1'"):
+    with pytest.raises(FfcgsError, match="expected 'json' or 'ffcgs.arrays.v1' and 'ffcgs.DatasetSdf'"):
         list(dio.iter_records(wrong))
 
     with pytest.raises(FfcgsError, match=r"q must have shape \(G, Q\) with G = 3"):
@@ -263,7 +263,14 @@ def test_bad_input(tmp_path, dataset):
     with pytest.raises(FfcgsError, match="mesh_sha256"):
         schema.Record.create(**{**_fields(make_record("o", 0, 3, 0)), "mesh_sha256": "abc"})
     with pytest.raises(FfcgsError, match="bad magic"):
-        schema.decode_arrays(b"x" * 20)
+        schema.decode_legacy(b"x" * 20)
+    with pytest.raises(FfcgsError, match="not a readable"):
+        schema.decode_message(b'{"meta": {}}')
+    good = json.loads(schema.encode_message({}, {"a": np.zeros(3)}))
+    with pytest.raises(FfcgsError, match=r"bad array 'a'.*24 bytes for shape \(2,\)"):
+        schema.decode_message(json.dumps({**good, "arrays": {"a": {**good["arrays"]["a"], "shape": [2]}}}).encode())
+    with pytest.raises(FfcgsError, match="bad array 'a'"):
+        schema.decode_message(json.dumps({**good, "arrays": {"a": {**good["arrays"]["a"], "data": "!!"}}}).encode())
     with pytest.raises(FfcgsError, match="not an initialised parts"):
         dio.write_part(tmp_path / "nowhere", make_record("o", 0, 3, 0))
     with pytest.raises(FfcgsError, match="batch_size"):
@@ -274,9 +281,9 @@ def test_bad_input(tmp_path, dataset):
     bad = tmp_path / "badshape.mcap"
     with open(bad, "wb") as f:
         w, ch = dio._new_writer(f, ("/sdf", "/grasps"))
-        w.add_message(ch["/sdf"], log_time=0, publish_time=0, data=schema.encode_arrays(rec.meta(), rec.sdf_arrays()))
+        w.add_message(ch["/sdf"], log_time=0, publish_time=0, data=schema.encode_message(rec.meta(), rec.sdf_arrays()))
         ga = {**rec.grasp_arrays(), "q": np.zeros((2, 9))}
-        w.add_message(ch["/grasps"], log_time=0, publish_time=0, data=schema.encode_arrays(rec.meta(), ga))
+        w.add_message(ch["/grasps"], log_time=0, publish_time=0, data=schema.encode_message(rec.meta(), ga))
         w.finish()
     with pytest.raises(FfcgsError, match=r"q must have shape"):
         list(dio.iter_records(bad))

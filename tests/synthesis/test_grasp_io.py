@@ -1,6 +1,7 @@
 """Grasp files: the .npz round trip and the MCAP log, read back with the `mcap` library and checked against the
-JSON Schemas stored in it. Uses a synthetic GraspSet with the dtypes `grasp._finish` writes (no compilation here;
-tests/cli/test_cli_grasp.py checks the files of a real run)."""
+JSON Schemas stored in it and against what Foxglove needs (schema names, scene entities, transforms, timeline).
+Uses a synthetic GraspSet with the dtypes `grasp._finish` writes (no compilation here; tests/cli/test_cli_grasp.py
+checks the files of a real run)."""
 
 import dataclasses
 import json
@@ -13,7 +14,7 @@ from ffcgs_jax.synthesis import grasp_io
 from ffcgs_jax.synthesis.config import EnergyConfig, OptimConfig
 from ffcgs_jax.synthesis.grasp import GraspConfig, GraspSet
 
-from mcap_checks import read_raw, schema_errors
+from mcap_checks import check_run_log, read_timed, schema_errors
 
 G_, T, C, Q = 3, 4, 5, 9
 CFG = GraspConfig(n=G_, seed=7, energy=EnergyConfig(d0=0.005, a_c=4.0), optim=OptimConfig(iters=T))
@@ -83,31 +84,22 @@ def test_save_npz_creates_its_folder_and_refuses_a_path_under_a_file(gs, tmp_pat
 # MCAP
 # ---------------------------------------------------------------------------------------------------------------
 
-def check_mcap(path, gs, summary):
-    """Everything a log of `gs` must hold; shared with tests/cli/test_cli_grasp.py."""
-    msgs, meta = read_raw(path)
+def check_mcap(path, gs, summary, hand_drawn=True):
+    """Everything a log of `gs` must hold: the Foxglove scene and timeline (mcap_checks.check_run_log), then the
+    package's own topics' contents."""
     T1, G = gs.trace["E"].shape
-    assert {k: len(v) for k, v in msgs.items()} == {"/config": 1, "/iteration": T1, "/grasp": G, "/summary": 1}
-    for topic, (encoding, schema, message_encoding) in meta.items():
-        assert encoding == "jsonschema" and message_encoding == "json"
-        assert schema == grasp_io.SCHEMAS[topic]
-        for m in msgs[topic]:
-            assert schema_errors(m, schema) == [], (topic, m)
-    try:  # not a dependency; a second opinion where it is installed
-        import jsonschema
-    except ImportError:
-        pass
-    else:
-        for topic, (_, schema, _) in meta.items():
-            for m in msgs[topic]:
-                jsonschema.validate(m, schema)
+    msgs = check_run_log(path, gs.arrays, gs.order(), T1, hand_drawn=hand_drawn)
+    tf = 1 + (T1 * min(G, grasp_io.HANDS) if "wrist_pose" in gs.trace else 0)  # + each shown wrist per iteration
+    assert {k: len(v) for k, v in msgs.items() if not k.startswith("/hand/")} == {
+        "/config": 1, "/scene": 1, "/tf": tf, "/energy": T1, "/grasp": G, "/summary": 1}
     cfg = msgs["/config"][0]
     assert cfg["object"] == gs.object_name and cfg["config"] == json.loads(json.dumps(dataclasses.asdict(gs.config)))
-    for t, m in enumerate(msgs["/iteration"]):
+    for t, m in enumerate(msgs["/energy"]):
         assert m["iteration"] == t
         for k in ("E", "E_g", "E_c"):
             assert len(m[k]) == G
             np.testing.assert_allclose(m[k], gs.trace[k][t], rtol=1e-15)
+        assert m["E_min"] == min(m["E"]) and m["E_median"] == pytest.approx(np.median(gs.trace["E"][t]))
     a = gs.arrays
     for i, m in enumerate(msgs["/grasp"]):
         assert m["index"] == i and m["valid"] == bool(a["valid"][i])
@@ -118,18 +110,85 @@ def check_mcap(path, gs, summary):
     return msgs
 
 
-def test_mcap_topics_schemas_and_contents(gs, tmp_path):
+@pytest.fixture(scope="module")
+def svh():
+    from ffcgs_jax.hand.kinematics import load_hand
+
+    return load_hand("svh")
+
+
+@pytest.fixture(scope="module")
+def box():
+    from ffcgs_jax.geometry import mesh_io
+
+    return mesh_io.load_mesh("box")
+
+
+def test_mcap_topics_schemas_and_contents(gs, svh, box, tmp_path):
     path = tmp_path / "run.mcap"
-    grasp_io.write_mcap(gs, path, "svh", SUMMARY)
+    grasp_io.write_mcap(gs, path, svh, SUMMARY, mesh=box)
     msgs = check_mcap(path, gs, SUMMARY)
-    assert msgs["/config"][0]["hand"] == "svh" and msgs["/config"][0]["version"]
+    assert msgs["/config"][0]["hand"] == svh.spec.name and msgs["/config"][0]["version"]
     assert msgs["/config"][0]["config"]["energy"]["d0"] == 0.005
+    assert all(len(msgs[f"/hand/{k}"]) == 1 for k in range(G_))  # no per-iteration poses: the result only
+    best = gs.order()[0]
+    hand = msgs["/hand/0"][0]["entities"][0]
+    assert hand["frame_id"] == f"wrist_{best}" and "valid" in hand["texts"][0]["text"]
+    # a capsule is a cylinder and two spheres, a box a cube: the SVH's 27 collision geoms
+    assert len(hand["cylinders"]) == len(hand["spheres"]) // 2 and len(hand["cubes"]) + len(hand["cylinders"]) == 27
+
+
+def test_mcap_hand_name_only_draws_contacts(gs, box, tmp_path):
+    path = tmp_path / "run.mcap"
+    grasp_io.write_mcap(gs, path, "svh", SUMMARY, mesh=box)
+    check_mcap(path, gs, SUMMARY, hand_drawn=False)
+
+
+def test_mcap_replays_a_trace_of_poses(gs, svh, box, tmp_path):
+    """A trace with per-iteration channels, wrist poses and fingertips puts the hands, their wrist frames and the
+    fingertips on the timeline, one frame per iteration (up to MAX_FRAMES, evenly spaced)."""
+    rng = np.random.default_rng(1)
+    trace = dict(gs.trace, q=rng.uniform(0, 0.5, (T + 1, G_, Q)), tips=rng.uniform(0, 0.1, (T + 1, G_, C, 3)),
+                 wrist_pose=np.tile(gs["wrist_pose"], (T + 1, 1, 1, 1)))
+    trace["tips"][-1] = gs["contacts"]  # the last frame is the result
+    trace["wrist_pose"][:, :, 2, 3] += np.linspace(0.05, 0, T + 1)[:, None]  # the wrists descend onto the result
+    traced = GraspSet(gs.arrays, trace, gs.config, gs.object_name)
+    path = tmp_path / "run.mcap"
+    grasp_io.write_mcap(traced, path, svh, SUMMARY, mesh=box)
+    msgs = check_mcap(path, traced, SUMMARY)
+    timed = read_timed(path)
+    energy_times = [t for topic, _, t, _ in timed if topic == "/energy"]
+    for k in range(G_):
+        assert [t for topic, _, t, _ in timed if topic == f"/hand/{k}"] == energy_times
+        i = gs.order()[k]
+        for t, m in enumerate(msgs[f"/hand/{k}"]):
+            spheres = m["entities"][1]["spheres"]
+            np.testing.assert_allclose([[s["pose"]["position"][c] for c in "xyz"] for s in spheres],
+                                       trace["tips"][t, i], atol=1e-12)
+    wrists = [(t, x) for topic, _, t, m in timed if topic == "/tf" for x in m["transforms"]
+              if x["child_frame_id"] == f"wrist_{gs.order()[0]}"]
+    assert len(wrists) == T + 2  # the result at the start, then one per iteration
+    np.testing.assert_allclose([x["translation"]["z"] for _, x in wrists[1:]],
+                               trace["wrist_pose"][:, gs.order()[0], 2, 3], atol=1e-12)
+
+
+def test_mcap_writes_strict_json(gs, tmp_path):
+    """JSON has no NaN: a non-finite energy is written as null, so Foxglove can still parse the message."""
+    bad = GraspSet(gs.arrays, dict(gs.trace, E=np.where(np.arange(G_) == 1, np.nan, gs.trace["E"])), gs.config,
+                   gs.object_name)
+    path = tmp_path / "run.mcap"
+    grasp_io.write_mcap(bad, path, "svh", SUMMARY)
+    raw = [m for topic, _, _, m in read_timed(path) if topic == "/energy"]
+    assert raw[0]["E"][1] is None and raw[0]["E"][0] == gs.trace["E"][0, 0]
 
 
 def test_schema_checker_can_fail():
     s = grasp_io.SCHEMAS
-    assert schema_errors({"iteration": 0, "E": [1.0], "E_g": [1.0]}, s["/iteration"])  # E_c missing
-    assert schema_errors({"iteration": 0.5, "E": [], "E_g": [], "E_c": []}, s["/iteration"])  # not an integer
+    ok = {"iteration": 0, "E": [1.0], "E_g": [1.0], "E_c": [1.0], "E_min": 1.0, "E_median": 1.0, "E_g_median": 1.0,
+          "E_c_median": 1.0}
+    assert not schema_errors(ok, s["/energy"])
+    assert schema_errors({k: v for k, v in ok.items() if k != "E_c"}, s["/energy"])  # E_c missing
+    assert schema_errors({**ok, "iteration": 0.5}, s["/energy"])  # not an integer
     assert schema_errors({"index": 0, "valid": 1, "wrist_pose": [[0.0]], "q": [], "contacts": [], "E": 0.0,
                           "E_g": 0.0, "E_c": 0.0}, s["/grasp"])  # valid is not a boolean
     assert schema_errors({"a": 1}, s["/summary"])  # summary values are strings

@@ -118,3 +118,14 @@ def test_the_page_renders_in_a_real_browser(view, tmp_path):
     obj = np.array(viewer.OBJECT_COLOUR)
     near = (np.abs(img - obj).max(-1) < 60).mean()
     assert near > 0.002, f"object colour on {near:.2%} of the screenshot"
+
+
+def test_show_command_serves_a_grasp_file(grasps, tmp_path, capsys):
+    from ffcgs_jax.cli import main as cli_main
+    from ffcgs_jax.synthesis import grasp_io
+
+    _, data, _ = grasps
+    path = tmp_path / "g.npz"
+    grasp_io.save_arrays({**data, "object_source": np.array("ball")}, path)
+    assert cli_main.main(["show", str(path), "--port", str(viewer.free_port()), "--seconds", "0.3"]) in (0, None)
+    assert "3D view of the grasps at http://127.0.0.1:" in capsys.readouterr().out

@@ -1,0 +1,166 @@
+"""Train the CVAE wrist-pose sampler on a dataset from `ffcgs dataset build`.
+
+    ffcgs train --config configs/sampler.toml [--optim.lr 3e-4 ...] [--cv.all]
+    ffcgs train --config configs/sampler.toml --sweep optim.lr=1e-4,3e-4 model.width=8,16
+
+Any config field is a flag (`--help` lists them). `--cv.all` runs every cross-validation fold and writes
+OUT/cv.md; `--sweep` runs the grid of the listed values (each run in OUT/sweep/<name>/, sequentially) and writes
+OUT/sweep.md. A run resumes where it stopped when started again with the same config and --out.
+`python -m train.sampler` (a checkout's old entry) is an alias that runs this module.
+"""
+
+import dataclasses
+import itertools
+import json
+import sys
+import time
+import typing
+from pathlib import Path
+
+import numpy as np
+
+from ffcgs_jax import files
+from ffcgs_jax.config import _coerce, check_all, split_config_arg, with_overrides
+from ffcgs_jax.errors import FfcgsError
+from ffcgs_jax.learning.config import TrainConfig
+
+# The training code imports JAX: `learning.data` and `learning.train` are imported where they run, so that
+# `ffcgs --help` (which names this command) stays quick.
+
+
+def split_args(argv: list[str]) -> tuple[str | None, list[str], list[str]]:
+    """(--config path, sweep specs "key=v1,v2", the remaining override flags)."""
+    path, argv = split_config_arg(argv)  # the same --config handling as the `ffcgs` commands
+    sweep, rest = [], []
+    i = 0
+    while i < len(argv):
+        if argv[i] == "--sweep":
+            i += 1
+            while i < len(argv) and not argv[i].startswith("--"):
+                sweep.append(argv[i])
+                i += 1
+            if not sweep:
+                raise FfcgsError("--sweep needs at least one KEY=V1,V2,... spec")
+        else:
+            rest.append(argv[i])
+            i += 1
+    return path, sweep, rest
+
+
+def _field(cfg, dotted: str):
+    """The type of the field a dotted key names, naming the valid keys when it names none."""
+    *path, name = dotted.split(".")
+    obj = cfg
+    for p in path:
+        if not dataclasses.is_dataclass(obj) or p not in {f.name for f in dataclasses.fields(obj)}:
+            raise FfcgsError(f"unknown sweep key {dotted!r}")
+        obj = getattr(obj, p)
+    hints = typing.get_type_hints(type(obj))
+    if name not in hints or dataclasses.is_dataclass(hints[name]):
+        valid = ", ".join(f.name for f in dataclasses.fields(obj) if not dataclasses.is_dataclass(hints[f.name]))
+        raise FfcgsError(f"unknown sweep key {dotted!r}; valid keys there: {valid}")
+    return hints[name]
+
+
+def parse_sweep(cfg: TrainConfig, specs: list[str]) -> list[tuple[str, list]]:
+    """["optim.lr=1e-4,3e-4"] -> [("optim.lr", [1e-4, 3e-4])], values converted to the field's type."""
+    grid = []
+    for spec in specs:
+        if "=" not in spec:
+            raise FfcgsError(f"sweep spec {spec!r} must look like KEY=V1,V2,...")
+        key, values = spec.split("=", 1)
+        hint = _field(cfg, key)
+        conv = {bool: lambda v: {"true": True, "false": False}[v.lower()], int: int, float: float, str: str}[hint]
+        try:
+            vals = [_coerce(hint, conv(v), key) for v in values.split(",") if v != ""]
+        except (ValueError, KeyError):
+            raise FfcgsError(f"sweep values of {key} must be {hint.__name__}s, got {values!r}") from None
+        if not vals:
+            raise FfcgsError(f"sweep spec {spec!r} has no values")
+        grid.append((key, vals))
+    return grid
+
+
+def replace(cfg, dotted: str, value):
+    head, _, rest = dotted.partition(".")
+    if not rest:
+        return dataclasses.replace(cfg, **{head: value})
+    return dataclasses.replace(cfg, **{head: replace(getattr(cfg, head), rest, value)})
+
+
+def run_cv(cfg: TrainConfig) -> dict:
+    """Every fold of cfg.cv in OUT/fold<k>/, then OUT/cv.md; returns the mean summary."""
+    from ffcgs_jax.learning import data as cvae_data
+    from ffcgs_jax.learning.train import train
+
+    rows = []
+    data = cvae_data.load(cfg.data.path, cfg.data.noisy)  # once: the folds differ only in the objects held out
+    for k in range(cfg.cv.folds):
+        sub = replace(replace(cfg, "cv.fold", k), "out", str(Path(cfg.out) / f"fold{k}"))
+        t0 = time.perf_counter()
+        rows.append(train(sub, data=data) | {"fold": k, "time_s": time.perf_counter() - t0})
+    val = np.array([r["val_rec"] for r in rows])
+    lines = ["| fold | validation objects | train grasps | train rec (cm) | val rec (cm) | val KL | time (s) |",
+             "|---|---|---|---|---|---|---|"]
+    lines += [f"| {r['fold']} | {', '.join(r['val_objects'])} | {r['train_grasps']} | {100 * r['train_rec']:.2f} | "
+              f"{100 * r['val_rec']:.2f} | {r['val_kl']:.2f} | {r['time_s']:.0f} |" for r in rows]
+    lines.append(f"\nvalidation reconstruction over {len(rows)} folds: {100 * val.mean():.2f} ± "
+                 f"{100 * val.std():.2f} cm (mean ± std)")
+    files.write_text(Path(cfg.out) / "cv.md", "\n".join(lines) + "\n")
+    print("\n".join(lines))
+    return {"val_rec": float(val.mean()), "val_rec_std": float(val.std()),
+            "train_rec": float(np.mean([r["train_rec"] for r in rows])),
+            "val_kl": float(np.mean([r["val_kl"] for r in rows])), "time_s": sum(r["time_s"] for r in rows)}
+
+
+def run_one(cfg: TrainConfig) -> dict:
+    from ffcgs_jax.learning.train import train
+
+    if cfg.cv.all:
+        return run_cv(cfg)
+    t0 = time.perf_counter()
+    return train(cfg) | {"time_s": time.perf_counter() - t0}
+
+
+def run_sweep(cfg: TrainConfig, grid: list[tuple[str, list]]) -> list[dict]:
+    keys = [k for k, _ in grid]
+    rows = []
+    for values in itertools.product(*(v for _, v in grid)):
+        name = "_".join(f"{k}={v}" for k, v in zip(keys, values))
+        sub = replace(cfg, "out", str(Path(cfg.out) / "sweep" / name))
+        for k, v in zip(keys, values):
+            sub = replace(sub, k, v)
+        check_all(sub)
+        rows.append({"name": name, "values": values} | run_one(sub))
+    fmt = lambda v: "-" if v is None else f"{100 * v:.2f}"  # noqa: E731
+    lines = ["| " + " | ".join(keys) + " | train rec (cm) | val rec (cm) | val KL | time (s) |",
+             "|" + "---|" * (len(keys) + 4)]
+    lines += ["| " + " | ".join(str(v) for v in r["values"]) + f" | {fmt(r['train_rec'])} | {fmt(r['val_rec'])} | "
+              f"{'-' if r['val_kl'] is None else format(r['val_kl'], '.2f')} | {r['time_s']:.0f} |" for r in rows]
+    Path(cfg.out).mkdir(parents=True, exist_ok=True)
+    files.write_text(Path(cfg.out) / "sweep.md", "\n".join(lines) + "\n")
+    files.write_text(Path(cfg.out) / "sweep.json", json.dumps(rows, indent=1, default=str))
+    print("\n".join(lines))
+    return rows
+
+
+def main(argv: list[str] | None = None, prog: str = "ffcgs train", name: str = "ffcgs") -> int:
+    """Run `prog ARGV`; errors are one line `NAME: error: ...` on stderr with exit status 2. `ffcgs train` and
+    `python -m train.sampler` both land here and differ only in `prog` (help's usage line) and `name`."""
+    argv = sys.argv[1:] if argv is None else argv
+    try:
+        path, specs, rest = split_args(argv)
+        cfg = with_overrides(TrainConfig, rest if path is None else ["--config", path, *rest], prog,
+                             keep_prefixes=True, description=__doc__)
+        if specs:
+            run_sweep(cfg, parse_sweep(cfg, specs))
+        else:
+            summary = run_one(cfg)
+            print(json.dumps({k: v for k, v in summary.items() if not isinstance(v, list)}, indent=1))
+    except FfcgsError as e:
+        print(f"{name}: error: {e}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print(f"{name}: interrupted (run it again to resume)", file=sys.stderr)
+        return 130
+    return 0
