@@ -18,6 +18,7 @@ from ffcgs_jax import files
 from ffcgs_jax.cli.dataset_commands import (DatasetExportCmd, DatasetInfoCmd, run_dataset_build, run_dataset_export,
                                              run_dataset_info)
 from ffcgs_jax.cli.depth_commands import FuseCmd, RenderDepthCmd, run_fuse, run_render_depth
+from ffcgs_jax.cli.grasp_object import recorded_object
 from ffcgs_jax.cli.show_command import ShowCmd, run_show
 from ffcgs_jax.dataset.config import DatasetConfig
 from ffcgs_jax.errors import FfcgsError
@@ -468,7 +469,7 @@ def run_eval(cmd: EvalCmd) -> None:
         raise FfcgsError(f"{cmd.grasps} has no {' or '.join(missing)} array: is it a grasps.npz from ffcgs grasp?")
     out = cmd.out or cmd.grasps
     files.check_outputs(("--out", out), ("--video", cmd.video))
-    name, scale = _eval_object(cmd, data, objects.names())
+    name, scale = recorded_object(cmd, data, objects.names())
     spec = hand_spec.load_spec(cmd.hand)
     mesh = mesh_io.load_mesh(name, scale=scale)
     simulated = mesh_io.identity(name, scale, mesh)
@@ -518,20 +519,6 @@ def run_eval(cmd: EvalCmd) -> None:
         frames = physics_video.record(scene, batch, 0, cmd.physics, protocols[0], cmd.video,
                                       title=f"{protocols[0]}  grasp {pick}")
         print(f"wrote {cmd.video} (grasp {pick}, {protocols[0]}, {frames} frames)")
-
-
-def _eval_object(cmd: EvalCmd | ShowCmd, data: dict, builtins: list[str]) -> tuple[str, float]:
-    """(object, scale) to simulate: `--object`/`--scale` where given, else what the grasp file records."""
-    stored_scale = float(data["object_scale"]) if "object_scale" in data else None
-    scale = cmd.scale if cmd.scale is not None else (stored_scale or 1.0)
-    if cmd.object is not None:
-        return cmd.object, scale
-    if "object_source" in data:
-        return str(data["object_source"]), scale
-    stored = str(data.get("object_name", ""))  # files from before object_source was recorded
-    if stored not in builtins:
-        raise FfcgsError(f"{cmd.grasps} does not name a built-in object ({stored!r}): pass --object")
-    return stored, scale
 
 
 def _read_poses(path: str) -> np.ndarray:

@@ -64,14 +64,14 @@ def serve(view, seconds: float) -> None:
 
 
 def run_show(cmd: ShowCmd) -> None:
-    from ffcgs_jax.cli.commands import _eval_object
+    from ffcgs_jax.cli.grasp_object import recorded_object
     from ffcgs_jax.geometry import mesh_io, objects
     from ffcgs_jax.hand import kinematics as K
     from ffcgs_jax.synthesis import grasp_io
     from ffcgs_jax.viz import viewer
 
     data = grasp_io.load_npz(cmd.grasps)
-    name, scale = _eval_object(cmd, data, objects.names())
+    name, scale = recorded_object(cmd, data, objects.names())
     view = viewer.show(data, K.load_hand(hand_of(data, cmd.hand)), mesh_io.load_mesh(name, scale=scale),
                        host=cmd.host, port=cmd.port)
     serve(view, cmd.seconds)

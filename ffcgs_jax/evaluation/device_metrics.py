@@ -27,6 +27,7 @@ import collections
 import functools
 import time
 from typing import NamedTuple
+from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -250,8 +251,7 @@ def _simplex(W, s, d, phase: int, basis, Binv, max_iter: int):
         return jnp.sum(W * hot[None, :n], axis=1) + s * hot[n:]
 
     def matrix(basis):
-        hot = (basis[None, :] == cols[:, None]).astype(dt)  # (n + 6, 6)
-        return jnp.sum(W[:, :, None] * hot[None, :n, :], axis=1) + s[:, None] * hot[n:, :]
+        return _columns(W, s, basis)
 
     def pivot(state):
         basis, Binv, it, degenerate, done = state
@@ -275,6 +275,20 @@ def _simplex(W, s, d, phase: int, basis, Binv, max_iter: int):
         return (jnp.where(stop, basis, jnp.where(at, enter, basis)), jnp.where(stop, Binv, new),
                 it + jnp.where(stop, 0, 1), jnp.where(best <= tol, degenerate + 1, 0), stop)
 
+    def refresh(state):
+        basis, Binv, it, degenerate, done = state
+        fresh, smallest = lp_jax.inverse(matrix(basis))
+        return basis, jnp.where(smallest > 0, fresh, Binv), it, degenerate, done
+
+    state = (basis, Binv, jnp.zeros((), jnp.int32), jnp.zeros((), jnp.int32), jnp.zeros((), bool))
+    basis, Binv, _, _, _ = _pivot_loop(pivot, refresh, state, max_iter)
+    return basis, Binv
+
+
+def _pivot_loop(pivot, refresh, state, max_iter: int):
+    """Trips of pivots, the inverse refreshed after each, until the state's done flag (state[4]) or `max_iter`
+    pivots (state[2])."""
+
     def trip(state):
         # Each trip ends in a loop-condition check, a device-to-host sync on a GPU: there the pivots of a trip are
         # unrolled, twice as many. On a CPU a loop keeps one copy of the pivot: every kernel of an executable is
@@ -285,50 +299,130 @@ def _simplex(W, s, d, phase: int, basis, Binv, max_iter: int):
         else:
             for _ in range(2 * _PIVOTS_PER_REFRESH):
                 state = pivot(state)
-        basis, Binv, it, degenerate, done = state
-        fresh, smallest = lp_jax.inverse(matrix(basis))
-        return basis, jnp.where(smallest > 0, fresh, Binv), it, degenerate, done
+        return refresh(state)
 
-    state = (basis, Binv, jnp.zeros((), jnp.int32), jnp.zeros((), jnp.int32), jnp.zeros((), bool))
-    basis, Binv, _, _, _ = jax.lax.while_loop(lambda st: ~st[4] & (st[2] < max_iter), trip, state)
-    return basis, Binv
+    return jax.lax.while_loop(lambda st: ~st[4] & (st[2] < max_iter), trip, state)
 
 
-def ray_facet(W: Float[Array, "6 N"], d: Float[Array, " 6"]) -> Float[Array, " 6"]:
-    """Unit normal of the facet of conv(W) through which the ray from the origin along d leaves (the origin inside).
+def _columns(W, s, basis):
+    """The basis matrix of [W | diag(s)] (6, 6), by one-hot sums (see `_simplex`)."""
+    n = W.shape[1]
+    cols = jnp.arange(n + 6)
+    hot = (basis[None, :] == cols[:, None]).astype(W.dtype)  # (n + 6, 6)
+    return jnp.sum(W[:, :, None] * hot[None, :n, :], axis=1) + s[:, None] * hot[n:, :]
+
+
+def _dual_simplex(W, s, d, basis, Binv, max_iter: int):
+    """Dual simplex pivots on phase 2 of `ray_facet`'s LP (min 1.x, [W | diag(s)] x = d, x >= 0, artificials never
+    entering) from a basis optimal for another right-hand side: its duals y = B^-T c_B do not depend on d, so it stays
+    dual feasible, and only the basic values B^-1 d may have turned negative. Each pivot takes the most negative basic
+    value out and lets in the wrench column of least reduced cost per unit of that row, which keeps every reduced
+    cost >= 0. A basic artificial must end at 0: one above 0 has its column's sign flipped (its row of B^-1 negated),
+    which makes its value negative and takes it out the same way. A walk's next ray leaves through the facet it came
+    from or one near it, so a few pivots replace a cold two-phase solve (bench/RESULTS.md, "End-to-end speed")."""
+    n = W.shape[1]
+    dt = W.dtype
+    tol = lp_jax._tol(dt)
+    cols = jnp.arange(n + 6)
+    six = jnp.arange(6)
+
+    def values(basis, Binv, s):
+        """B^-1 d, with basic artificials above 0 flipped to below it: (values, Binv, s)."""
+        xB = jnp.sum(Binv * d[None, :], axis=1)
+        flip = (basis >= n) & (xB > tol)
+        which = jnp.sum(jnp.where(flip[:, None], (basis[:, None] - n) == six[None, :], False), axis=0) > 0
+        sign = jnp.where(flip, -1.0, 1.0).astype(dt)
+        return xB * sign, Binv * sign[:, None], jnp.where(which, -s, s)
+
+    def pivot(state):
+        basis, Binv, it, s, done = state
+        xB, Binv, s = values(basis, Binv, s)
+        leave = jnp.argmin(xB)
+        stop = done | (jnp.min(xB) >= -tol)
+        at = six == leave
+        row = jnp.sum(jnp.where(at[:, None], Binv, 0.0), axis=0)  # e_leave^T B^-1
+        alpha = jnp.concatenate([jnp.sum(W * row[:, None], axis=0), s * row])
+        y = jnp.sum(Binv * (basis < n).astype(dt)[:, None], axis=0)
+        reduced = jnp.maximum(1.0 - jnp.sum(W * y[:, None], axis=0), 0.0)  # >= 0 but for rounding
+        in_basis = jnp.any(basis[:, None] == cols[None, :n], axis=0)
+        ok = ~in_basis & (alpha[:n] < -tol)
+        ratio = jnp.where(ok, reduced / jnp.where(ok, -alpha[:n], 1.0), jnp.inf)
+        enter = jnp.argmin(ratio)
+        stop = stop | ~jnp.any(ok)  # no column can take the row: d outside the cone (no force closure)
+        hot = (cols[:n] == enter).astype(dt)
+        u = jnp.sum(Binv * jnp.sum(W * hot[None, :], axis=1)[None, :], axis=1)
+        u_leave = jnp.sum(jnp.where(at, u, 0.0))
+        new_row = row / jnp.where(jnp.abs(u_leave) > 0, u_leave, 1.0)
+        new = jnp.where(at[:, None], new_row[None, :], Binv - u[:, None] * new_row[None, :])
+        return (jnp.where(stop, basis, jnp.where(at, enter, basis)), jnp.where(stop, Binv, new),
+                it + jnp.where(stop, 0, 1), s, stop)
+
+    def refresh(state):
+        basis, Binv, it, s, done = state
+        fresh, smallest = lp_jax.inverse(_columns(W, s, basis))
+        return basis, jnp.where(smallest > 0, fresh, Binv), it, s, done
+
+    state = (basis, Binv, jnp.zeros((), jnp.int32), s, jnp.zeros((), bool))
+    basis, Binv, _, s, _ = _pivot_loop(pivot, refresh, state, max_iter)
+    return basis, Binv, s
+
+
+class RayBasis(NamedTuple):
+    """The optimal basis of a `ray_facet` LP, for the next ray of a walk to start from (`_dual_simplex`)."""
+
+    basis: Array  # (6,) column indices into [W | diag(s)]
+    Binv: Array  # (6, 6)
+    s: Array  # (6,) the artificial columns' signs
+
+
+def ray_facet(W: Float[Array, "6 N"], d: Float[Array, " 6"], warm: RayBasis | None = None
+              ) -> tuple[Float[Array, " 6"], RayBasis]:
+    """Unit normal of the facet of conv(W) through which the ray from the origin along d leaves (the origin inside),
+    and the LP's optimal basis.
 
     The ray leaves at d / g, g = min 1.lam s.t. W lam = d, lam >= 0 (the gauge of d); that LP's dual optimum y is
     the polar vertex of the facet (y . w <= 1 with equality on it), so the normal is y / |y| and the facet's distance
-    1 / |y|. Two-phase simplex on the 6 rows: phase 1 from the artificial columns sign(d_i) e_i."""
+    1 / |y|. Cold: two-phase simplex on the 6 rows, phase 1 from the artificial columns sign(d_i) e_i. `warm`: the
+    optimal basis of the same W for another d, finished by dual simplex pivots (`_dual_simplex`)."""
     n = W.shape[1]
     dt = W.dtype
-    s = jnp.where(d >= 0, 1.0, -1.0).astype(dt)
-    basis, Binv = jnp.arange(n, n + 6), jnp.diag(s)
-    basis, Binv = _simplex(W, s, d, 1, basis, Binv, _MAX_PIVOTS)
-    basis, Binv = _simplex(W, s, d, 2, basis, Binv, _MAX_PIVOTS)
+    if warm is None:
+        s = jnp.where(d >= 0, 1.0, -1.0).astype(dt)
+        basis, Binv = jnp.arange(n, n + 6), jnp.diag(s)
+        basis, Binv = _simplex(W, s, d, 1, basis, Binv, _MAX_PIVOTS)
+        basis, Binv = _simplex(W, s, d, 2, basis, Binv, _MAX_PIVOTS)
+    else:
+        basis, Binv, s = _dual_simplex(W, warm.s, d, warm.basis, warm.Binv, _MAX_PIVOTS)
     y = jnp.sum(Binv * (basis < n).astype(dt)[:, None], axis=0)  # B^-T c_B, c_B = 1 on wrench columns
     size = jnp.sqrt(jnp.sum(y * y))
-    return jnp.where(size > 0, y / jnp.where(size > 0, size, 1.0), d)
+    return jnp.where(size > 0, y / jnp.where(size > 0, size, 1.0), d), RayBasis(basis, Binv, s)
 
 
-def search_epsilon(W: Float[Array, "6 N"], starts: Float[Array, "M 6"]) -> Float[Array, ""]:
+def search_epsilon(W: Float[Array, "6 N"], starts: Float[Array, "M 6"], warm: bool = True) -> Float[Array, ""]:
     """min over searched unit directions u of h(u) = max_j u . w_j: an upper bound of the signed Ferrari-Canny
     epsilon, exact where the walk reaches the nearest facet (see the module docstring). Meaningful when the
-    origin is inside the hull (force closure); otherwise only its sign is."""
+    origin is inside the hull (force closure); otherwise only its sign is. `warm` False solves every ray of a walk
+    cold (two phases), as before the warm starts: the same facets, kept for tests and bench/evaluation_parts.py."""
     # full float32 products: a GPU's default (TF32-like) precision errs by ~1e-3, a tenth of a typical epsilon
     h0 = jnp.max(jnp.matmul(starts, W, precision=_EXACT), axis=1)
     dirs = starts[jax.lax.top_k(-h0, EPS_KEEP)[1]]
     best = jnp.min(h0)
 
-    def walk(carry):
-        step, dirs, best, _ = carry
-        new = jax.vmap(ray_facet, (None, 0))(W, dirs)
+    def step(dirs, best, warm):
+        new, bases = jax.vmap(ray_facet, (None, 0, 0 if warm is not None else None))(W, dirs, warm)
         moved = jnp.any(jnp.abs(new - dirs) > 1e-6)
         h = jnp.max(jnp.matmul(new, W, precision=_EXACT), axis=1)
-        return step + 1, new, jnp.minimum(best, jnp.min(h)), moved
+        return new, jnp.minimum(best, jnp.min(h)), moved, bases
 
+    def walk(carry):
+        i, dirs, best, _, bases = carry
+        dirs, best, moved, bases = step(dirs, best, bases if warm else None)
+        return i + 1, dirs, best, moved, bases
+
+    # the first ray of each walk is solved cold, the next ones from the basis of the ray before (a few dual pivots);
     # a walk that returns the facet it started from has ended (the origin's foot point lies in that facet)
-    carry = (jnp.zeros((), jnp.int32), dirs, best, jnp.ones((), bool))
+    dirs, best, moved, bases = step(dirs, best, None)
+    carry = (jnp.ones((), jnp.int32), dirs, best, moved, bases)
     return jax.lax.while_loop(lambda c: (c[0] < EPS_WALK) & c[3], walk, carry)[2]
 
 
@@ -422,9 +516,11 @@ def evaluate(surface: MeshTable | sdf_mod.GradientSDF, contacts: Float[Array, "B
     return run()
 
 
-def compile_evaluate(surface, contacts, q, lower, upper, centre, radius, cfg: MetricsConfig = MetricsConfig()):
+def compile_evaluate(surface, contacts, q, lower, upper, centre, radius, cfg: MetricsConfig = MetricsConfig(),
+                     compile: bool = True):
     """`evaluate`'s arguments checked and compiled ahead of time: `run()` gives its result, and the seconds the
-    compilation took (0 when an earlier call of the same shapes compiled it), so callers report compile apart."""
+    compilation took (0 when an earlier call of the same shapes compiled it), so callers report compile apart.
+    `compile` False: (None, 0.0) where nothing compiled yet fits, for callers that must not compile now."""
     cfg.check()
     if contacts.ndim != 3 or contacts.shape[-1] != 3 or q.ndim != 2 or q.shape[0] != contacts.shape[0]:
         raise FfcgsError(f"device evaluation needs contacts (B, C, 3) and q (B, Q), got {contacts.shape} and "
@@ -439,6 +535,8 @@ def compile_evaluate(surface, contacts, q, lower, upper, centre, radius, cfg: Me
     key = (str(jax.tree.map(_signature, args)), type(surface).__name__, cfg, jax.default_backend())
     t0 = time.perf_counter()
     if key not in _COMPILED:
+        if not compile:
+            return None, 0.0
         _COMPILED[key] = _evaluate_jit.lower(*args, cfg=cfg).compile()
     compiled = _COMPILED[key]
     if pad:

@@ -102,8 +102,12 @@ def test_ray_facet_returns_the_facet_the_ray_leaves_through():
     hull = scipy.spatial.ConvexHull(w)
     ds = rng.standard_normal((10, 6))
     ds /= np.linalg.norm(ds, axis=1, keepdims=True)
-    normals = np.asarray(jax.jit(jax.vmap(dm.ray_facet, (None, 0)))(jnp.asarray(w.T), jnp.asarray(ds)))
-    for d, n in zip(ds, normals):
+    cold = jax.jit(jax.vmap(dm.ray_facet, (None, 0)))
+    normals, bases = cold(jnp.asarray(w.T), jnp.asarray(ds))
+    # warm: each ray finished by dual pivots from the optimal basis of another ray (the walks' later steps)
+    warm, _ = jax.jit(jax.vmap(dm.ray_facet, (None, 0, 0)))(jnp.asarray(w.T), jnp.asarray(ds[::-1]), bases)
+    np.testing.assert_allclose(np.asarray(warm)[::-1], np.asarray(normals), atol=1e-9)
+    for d, n in zip(ds, np.asarray(normals)):
         # a facet normal of the hull, and the ray's exit point lies on that facet's plane
         dots = hull.equations[:, :6] @ n
         f = int(np.argmax(dots))

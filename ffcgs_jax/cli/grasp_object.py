@@ -1,0 +1,18 @@
+"""Which object a grasp file's grasps were planned on: shared by `ffcgs eval` and `ffcgs show`."""
+
+from ffcgs_jax.errors import FfcgsError
+
+
+def recorded_object(cmd, data: dict, builtins: list[str]) -> tuple[str, float]:
+    """(object, scale) of the grasps in `data` (a grasp file's arrays): `cmd.object`/`cmd.scale` where given, else
+    what the file records. `cmd` is any command with `grasps`, `object` and `scale` fields."""
+    stored_scale = float(data["object_scale"]) if "object_scale" in data else None
+    scale = cmd.scale if cmd.scale is not None else (stored_scale or 1.0)
+    if cmd.object is not None:
+        return cmd.object, scale
+    if "object_source" in data:
+        return str(data["object_source"]), scale
+    stored = str(data.get("object_name", ""))  # files from before object_source was recorded
+    if stored not in builtins:
+        raise FfcgsError(f"{cmd.grasps} does not name a built-in object ({stored!r}): pass --object")
+    return stored, scale
