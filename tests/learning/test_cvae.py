@@ -155,10 +155,11 @@ def test_loss_gradient_matches_finite_differences(params, grid):
     palm, tet = jnp.asarray([0.0, 0.0, 0.08]), jnp.asarray(rng.normal(0, 0.04, (4, 3)))
     args = (g[None], origin[None], h[None], pose, jax.random.key(4), 0.005, palm, tet)
 
+    @jax.jit
     def f(p):
         return batch_loss(p, *args)[0]
 
-    grads = jax.grad(f)(params)
+    grads = jax.jit(jax.grad(f))(params)
     leaves, tree = jax.tree.flatten(params)
     for trial in range(3):
         d = [jnp.asarray(np.random.default_rng(10 + trial).normal(size=x.shape)) for x in leaves]
