@@ -17,7 +17,9 @@ same figures for every grasp at once, on the device that ran the synthesis, and 
   holding the origin, the distance to its nearest facet), searched by facet walks (`search_epsilon`): from the
   `EPS_KEEP` lowest of `EPS_STARTS` spread directions, each step shoots a ray from the origin along the current
   direction (`ray_facet`, a 6-row LP) and moves to the normal of the facet the ray leaves through, which never
-  increases the facet's distance; a walk ends in a facet holding the origin's foot point. Every h(u) of a unit u
+  increases the facet's distance; a walk ends in a facet holding the origin's foot point. The first ray of a walk is
+  solved cold, each later one from the last ray's optimal basis by dual simplex pivots (`_dual_simplex`: the LP's
+  duals do not depend on the ray, so that basis stays dual feasible). Every h(u) of a unit u
   bounds epsilon from above, so the result is never below Qhull's; bench/RESULTS.md gives how close it comes
   ("End-to-end speed"). Force closure: a full-rank wrench set (as `metrics.epsilon_q1` asks), the origin in the
   hull (E_g at most `_eps_tol`'s bound) and the searched epsilon above its bound.

@@ -230,6 +230,7 @@ def test_validate_keeps_the_grasps_that_pass():
     assert ("kept after --validate" in dict(rows)) and dict(rows)["kept after --validate"].startswith("1 of 2")
 
 
+@pytest.mark.slow  # 60-70 s on two cores, mostly compiling; test_validate_keeps_the_grasps_that_pass covers the path
 def test_grasp_validate_end_to_end(capsys, tmp_path):
     path = tmp_path / "v.npz"
     code, out, err = run(capsys, "grasp", "box", "--n", "4", "--iters", "5", "--res", "16", "--validate",

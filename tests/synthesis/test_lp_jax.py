@@ -1,5 +1,7 @@
 """The in-graph Q-distance LP (`lp_jax.py`) against HiGHS (float64 reference) and the ProxSuite path."""
 
+import functools
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -76,10 +78,12 @@ def test_batched_equals_loop(instances, solved):
 def test_gradient_matches_proxsuite_path_and_finite_differences(instances):
     """Both paths' dE_g/dW on instances with a unique optimum (E_g > 0), and central differences of the value."""
     rng = np.random.default_rng(3)
+    grad_jax = jax.jit(jax.grad(lambda w: lp_jax.q_distance(w, U)[0]))
+    grad_host = jax.jit(jax.grad(lambda w: lp_host.q_distance(w, U)[0]))
     for W in instances[20:25]:  # one-sided: E_g > 0
         Wj = jnp.asarray(W)
-        g_jax = jax.grad(lambda w: lp_jax.q_distance(w, U)[0])(Wj)
-        g_host = jax.grad(lambda w: lp_host.q_distance(w, U)[0])(Wj)
+        g_jax = grad_jax(Wj)
+        g_host = grad_host(Wj)
         np.testing.assert_allclose(g_jax, g_host, atol=2e-5)  # ProxSuite's duals carry its 1e-7 KKT accuracy
         d = rng.normal(size=W.shape)
         eps = 1e-6
@@ -174,6 +178,14 @@ def test_basis_without_axes_is_refused():
         lp_jax._axis_columns(np.ones((6, 12)))
 
 
+@functools.partial(jax.jit, static_argnames="solver")
+def _paths_value(c, n, solver):
+    return quality.q_distance(c, n, jnp.zeros(3), 0.05, 0.2, 8, 64, solver)
+
+
+_paths_grad = jax.jit(jax.grad(lambda c, n, solver: _paths_value(c, n, solver)[0]), static_argnames="solver")
+
+
 def test_quality_q_distance_paths_agree_with_gradients():
     """`quality.q_distance(..., solver=)` and its gradient wrt the contacts, both paths, on one-sided grasps."""
     rng = np.random.default_rng(5)
@@ -182,13 +194,10 @@ def test_quality_q_distance_paths_agree_with_gradients():
         c = jnp.asarray(0.05 * c / np.linalg.norm(c, axis=1, keepdims=True))
         n = c / jnp.linalg.norm(c, axis=1, keepdims=True)
 
-        def f(cc, solver):
-            return quality.q_distance(cc, n, jnp.zeros(3), 0.05, 0.2, 8, 64, solver)
-
-        (vj, okj), (vh, okh) = f(c, "jax"), f(c, "proxsuite")
+        (vj, okj), (vh, okh) = _paths_value(c, n, "jax"), _paths_value(c, n, "proxsuite")
         assert bool(okj) and bool(okh) and float(vj) == pytest.approx(float(vh), abs=1e-6) and float(vj) > 1e-3
-        gj = jax.grad(lambda cc: f(cc, "jax")[0])(c)
-        gh = jax.grad(lambda cc: f(cc, "proxsuite")[0])(c)
+        gj = _paths_grad(c, n, "jax")
+        gh = _paths_grad(c, n, "proxsuite")
         np.testing.assert_allclose(gj, gh, atol=1e-4)
 
 

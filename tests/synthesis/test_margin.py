@@ -68,9 +68,9 @@ def test_margin_gradient_matches_central_differences():
     ties; delta above every support so each direction contributes."""
     c, n = _grasp(2)
     dirs = jnp.asarray(quality.margin_start(16))
-    f = lambda cc, nn: quality.support_margin(  # noqa: E731
-        quality.primitive_wrenches(cc, nn, jnp.zeros(3), R, MU, M_EDGES), dirs, 2.0)[0]
-    gc, gn = jax.grad(f, argnums=(0, 1))(jnp.asarray(c), jnp.asarray(n))
+    f = jax.jit(lambda cc, nn: quality.support_margin(
+        quality.primitive_wrenches(cc, nn, jnp.zeros(3), R, MU, M_EDGES), dirs, 2.0)[0])
+    gc, gn = jax.jit(jax.grad(f, argnums=(0, 1)))(jnp.asarray(c), jnp.asarray(n))
     for x, g, which in ((c, gc, 0), (n, gn, 1)):
         fd = np.zeros_like(x)
         for idx in np.ndindex(x.shape):
