@@ -47,7 +47,7 @@ def stages(hand, mesh, cfg, fresh: bool) -> dict[str, float]:
     ev = timed("evaluation run", run_eval)
     timed("copy back", lambda: fetch.device_get((out, ev)))
     t0 = time.perf_counter()
-    grasp._finish(hand, target, cfg, out, lambda: ev, 0.0, 0.0, "object").order()  # copies back again: subtract
+    grasp._finish(hand, target, cfg, out, lambda: ev, 0.0, "object").order()  # copies back again: subtract
     t["finish (host)"] = 1e3 * (time.perf_counter() - t0) - t["copy back"]
     t["sum of stages"] = 1e3 * (time.perf_counter() - start) - t["copy back"]
     return t

@@ -29,7 +29,6 @@ import collections
 import functools
 import time
 from typing import NamedTuple
-from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -410,8 +409,8 @@ def search_epsilon(W: Float[Array, "6 N"], starts: Float[Array, "M 6"], warm: bo
     dirs = starts[jax.lax.top_k(-h0, EPS_KEEP)[1]]
     best = jnp.min(h0)
 
-    def step(dirs, best, warm):
-        new, bases = jax.vmap(ray_facet, (None, 0, 0 if warm is not None else None))(W, dirs, warm)
+    def step(dirs, best, start):  # start: the rays' last bases (RayBasis), or None to solve them cold
+        new, bases = jax.vmap(ray_facet, (None, 0, 0 if start is not None else None))(W, dirs, start)
         moved = jnp.any(jnp.abs(new - dirs) > 1e-6)
         h = jnp.max(jnp.matmul(new, W, precision=_EXACT), axis=1)
         return new, jnp.minimum(best, jnp.min(h)), moved, bases

@@ -198,7 +198,7 @@ def synthesize(hand: Hand, mesh: trimesh.Trimesh | sdf_mod.GradientSDF, cfg: Gra
         with clock() as aot_eval:
             if queued is None:
                 evaluate, eval_compile_s = _prepare_evaluation(hand, surface, target, cfg, out)
-        gs = _finish(hand, target, cfg, out, evaluate, synthesis_s, 0.0, object_name)
+        gs = _finish(hand, target, cfg, out, evaluate, synthesis_s, object_name)
     on_the_way = every[0] - aot_device[0] - aot_eval[0]
     compile_total = compile_s + eval_compile_s + on_the_way
     gs.arrays["compile_s"] = np.asarray(compile_total, np.float64)
@@ -246,7 +246,8 @@ def _prepare_evaluation(hand, surface, target, cfg, out: DeviceOut, compile: boo
                                            target.centre, target.radius, _metrics_config(cfg), compile=compile)
 
 
-def _finish(hand, target, cfg, out: DeviceOut, evaluate, synthesis_s, compile_s, object_name) -> GraspSet:
+def _finish(hand, target, cfg, out: DeviceOut, evaluate, synthesis_s, object_name) -> GraspSet:
+    """The grasps on the host, ranked fields and all; `synthesize` adds the call's compile_s, sdf_s and total_s."""
     t0 = time.perf_counter()
     with compile_clock.compiling() as packing:  # the packing's first call in a process compiles: not copy time
         out, ev = fetch.device_get((out, evaluate()))  # the one device-to-host copy of the call (one per dtype)
@@ -292,7 +293,6 @@ def _finish(hand, target, cfg, out: DeviceOut, evaluate, synthesis_s, compile_s,
         "iters": np.asarray(opt.iters),
         "valid": valid,
         "synthesis_s": np.asarray(synthesis_s, np.float64),
-        "compile_s": np.asarray(compile_s, np.float64),
     }
     arrays["score"] = score.score(arrays)
     arrays["evaluation_s"] = np.asarray(time.perf_counter() - t0 - packing[0], np.float64)  # the copy included
