@@ -1,6 +1,13 @@
 """Every file the package writes goes through here: outputs checked before the work starts, then written
 atomically, so a failed or interrupted write leaves the previous file exactly as it was.
 
+Several outputs of one command land together: inside `outputs_together(paths)`, a write to one of `paths` stays a
+temporary file until the block ends without an error, and then every one of them is renamed into place; on an
+error or an interrupt none is (`output_plan` declares a command's outputs and checks them before any work). A
+folder output (`write_folder`) is written as a hidden sibling folder and swapped in whole, with a manifest
+(`MANIFEST`) naming the files the run wrote: readers of such folders (`manifest_files`) trust it over whatever
+else lies there, and `check_folder_output` refuses to replace a folder holding files that no run of ours wrote.
+
 `check_output` is the one rule for output paths: the folder is created if missing, and a path that cannot be
 written (a folder, a read-only place, a name under a file) is refused with one line before anything is loaded or
 compiled. `atomic_write` / `atomic_path` write a temporary file in the same folder, flush and fsync it, then
@@ -9,7 +16,9 @@ target is untouched.
 """
 
 import contextlib
+import json
 import os
+import shutil
 from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import IO
@@ -53,7 +62,7 @@ def check_folder(path: str | Path, what: str = "output folder") -> Path:
     return path
 
 
-_ACTIVE: set[Path] = set()  # temporary files being written now, for `discard_temporaries`
+_ACTIVE: set[Path] = set()  # temporary files and folders being written now, for `discard_temporaries`
 
 
 def discard_temporaries() -> None:
@@ -61,7 +70,7 @@ def discard_temporaries() -> None:
     which runs no `finally` blocks."""
     for tmp in list(_ACTIVE):
         with contextlib.suppress(OSError):
-            tmp.unlink()
+            shutil.rmtree(tmp) if tmp.is_dir() else tmp.unlink()
 
 
 def _temporary(path: Path) -> Path:
@@ -72,21 +81,28 @@ def _temporary(path: Path) -> Path:
 
 @contextlib.contextmanager
 def atomic_path(path: str | Path) -> Iterator[Path]:
-    """A temporary path to write in place of `path`; it replaces `path` when the block ends without an error."""
+    """A temporary path to write in place of `path`; it replaces `path` when the block ends without an error (or,
+    for an output of an `outputs_together` block, when that block ends)."""
     path = Path(path)
     tmp = _temporary(path)
     _ACTIVE.add(tmp)
+    deferred = False
     try:
         yield tmp
         with open(tmp, "rb+") as f:
             os.fsync(f.fileno())
-        os.replace(tmp, path)
+        if _TOGETHER is not None and resolved(path) in _TOGETHER.paths:
+            _TOGETHER.pending.append((tmp, path))
+            deferred = True
+        else:
+            os.replace(tmp, path)
     except OSError as e:
         raise FfcgsError(f"cannot write {path}: {e.strerror or e}") from None
     finally:
-        _ACTIVE.discard(tmp)
-        with contextlib.suppress(OSError):
-            tmp.unlink()
+        if not deferred:
+            _ACTIVE.discard(tmp)
+            with contextlib.suppress(OSError):
+                tmp.unlink()
 
 
 def atomic_write(path: str | Path, write: Callable[[IO[bytes]], object]) -> Path:
@@ -101,6 +117,152 @@ def atomic_write(path: str | Path, write: Callable[[IO[bytes]], object]) -> Path
 def write_text(path: str | Path, text: str) -> Path:
     """`text` (UTF-8) to `path`, atomically."""
     return atomic_write(path, lambda f: f.write(text.encode()))
+
+
+def resolved(path: str | Path) -> Path:
+    """The absolute path with links and `..` resolved as far as it exists: two names of one file compare equal."""
+    return Path(os.path.realpath(Path(path).expanduser()))
+
+
+class _Together:
+    def __init__(self, paths):
+        self.paths = {resolved(p) for p in paths}
+        self.pending: list[tuple[Path, Path]] = []  # (temporary, target), in the order written
+        self.said: list[str] = []  # `announce`d lines, said once their outputs are in place
+
+
+_TOGETHER: _Together | None = None
+
+
+@contextlib.contextmanager
+def outputs_together(paths) -> Iterator[None]:
+    """Writes to any of `paths` inside the block land together when it ends without an error; on an error (or
+    KeyboardInterrupt) every temporary is removed and no target changes. Blocks do not nest."""
+    global _TOGETHER
+    if _TOGETHER is not None:
+        raise RuntimeError("outputs_together blocks do not nest")
+    _TOGETHER = together = _Together(paths)
+    try:
+        yield
+        commit_outputs()
+    finally:
+        _TOGETHER = None
+        for tmp, _ in together.pending:
+            _ACTIVE.discard(tmp)
+            with contextlib.suppress(OSError):
+                shutil.rmtree(tmp) if tmp.is_dir() else tmp.unlink()
+
+
+def commit_outputs() -> None:
+    """Put every output written so far in the current `outputs_together` block into place now (before a command
+    hands over to something that may end the process, such as a viewer served until Ctrl-C); later writes of the
+    block land at its end. Nothing to do outside such a block."""
+    if _TOGETHER is None:
+        return
+    pending = _TOGETHER.pending
+    while pending:  # what is left after a failed rename stays pending, and the block's end removes it
+        tmp, target = pending[0]
+        try:
+            _swap_folder(tmp, target) if tmp.is_dir() else os.replace(tmp, target)
+        except OSError as e:
+            raise FfcgsError(f"cannot write {target}: {e.strerror or e}") from None
+        pending.pop(0)
+        _ACTIVE.discard(tmp)
+    for line in _TOGETHER.said:
+        print(line)
+    _TOGETHER.said.clear()
+
+
+def announce(line: str) -> None:
+    """Print `line` ("wrote grasps.npz") now, or inside an `outputs_together` block once its outputs are in place:
+    a run that fails after writing one of several outputs must not have said it wrote it."""
+    if _TOGETHER is None:
+        print(line)
+    else:
+        _TOGETHER.said.append(line)
+
+
+MANIFEST = ".ffcgs-manifest.json"  # in a folder a command wrote: the files of that run (`write_folder`)
+
+
+def manifest_files(folder: str | Path) -> set[str] | None:
+    """The files (paths relative to `folder`, '/'-separated) that the run which wrote `folder` names in its
+    manifest, or None for a folder without one (written by hand or by another program). Readers of a folder
+    take only these files when there is a manifest."""
+    path = Path(folder) / MANIFEST
+    if not path.is_file():
+        return None
+    try:
+        names = json.loads(path.read_text())["files"]
+    except (OSError, ValueError, KeyError, TypeError):
+        raise FfcgsError(f"{path} is not a readable manifest (delete it to read the folder as it is)") from None
+    if not isinstance(names, list) or not all(isinstance(n, str) for n in names):
+        raise FfcgsError(f"{path} is not a readable manifest: 'files' must be a list of names")
+    return set(names)
+
+
+def _listing(folder: Path) -> list[str]:
+    return sorted(p.relative_to(folder).as_posix() for p in folder.rglob("*") if not p.is_dir())
+
+
+def check_folder_output(path: str | Path, what: str = "output folder", overwrite: bool = False) -> Path:
+    """`path` as a folder a command may write whole, checked before the work: not a file, its parent writable, and
+    either missing, empty, or written by an earlier run of ours with nothing added since (its manifest names every
+    file in it). `overwrite` allows replacing any folder whole. FfcgsError naming `what` otherwise."""
+    path = Path(path).expanduser()
+    if path.exists() and not path.is_dir():
+        raise FfcgsError(f"{what} {path} is a file, not a folder")
+    here = Path.cwd().resolve()
+    if resolved(path) == here or resolved(path) in here.parents:
+        raise FfcgsError(f"{what} {path} is the current folder or holds it, and the folder is replaced whole; "
+                         "name a subfolder")
+    check_output(path.parent / f".{path.name or 'folder'}.probe", what)  # parents created, write permission
+    if path.is_dir() and not overwrite:
+        ours = manifest_files(path)
+        foreign = [n for n in _listing(path) if n != MANIFEST and (ours is None or n not in ours)]
+        if foreign:
+            raise FfcgsError(f"{what} {path} holds {len(foreign)} file(s) that this command did not write (e.g. "
+                             f"{foreign[0]}); choose a new or empty folder, or pass --overwrite to replace it whole")
+    return path
+
+
+def _swap_folder(tmp: Path, target: Path) -> None:
+    old = None
+    if target.exists():
+        old = target.with_name(f".{target.name}.{os.getpid()}.old")
+        os.rename(target, old)
+    os.rename(tmp, target)
+    if old is not None:
+        shutil.rmtree(old, ignore_errors=True)
+
+
+@contextlib.contextmanager
+def write_folder(path: str | Path, written_by: str) -> Iterator[Path]:
+    """A fresh hidden folder beside `path` to write the folder's files into; when the block ends without an error
+    it gets a manifest (`MANIFEST`: `written_by` and its files) and replaces `path` whole (at the end of the
+    `outputs_together` block, for a declared output). On an error or an interrupt it is removed and `path` is left
+    as it was. Check the folder first with `check_folder_output`."""
+    path = Path(path).expanduser()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    shutil.rmtree(tmp, ignore_errors=True)
+    tmp.mkdir()
+    _ACTIVE.add(tmp)
+    deferred = False
+    try:
+        yield tmp
+        write_text(tmp / MANIFEST, json.dumps({"written_by": written_by, "files": _listing(tmp)}, indent=1) + "\n")
+        if _TOGETHER is not None and resolved(path) in _TOGETHER.paths:
+            _TOGETHER.pending.append((tmp, path))
+            deferred = True
+        else:
+            _swap_folder(tmp, path)
+    except OSError as e:
+        raise FfcgsError(f"cannot write {path}: {e.strerror or e}") from None
+    finally:
+        if not deferred:
+            _ACTIVE.discard(tmp)
+            shutil.rmtree(tmp, ignore_errors=True)
 
 
 _ZIP, _NPY = b"PK\x03\x04", b"\x93NUMPY"

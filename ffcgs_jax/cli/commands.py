@@ -23,6 +23,7 @@ from ffcgs_jax.cli.show_command import ShowCmd, run_show
 from ffcgs_jax.dataset.config import DatasetConfig
 from ffcgs_jax.errors import FfcgsError
 from ffcgs_jax.geometry.config import SDFConfig
+from ffcgs_jax.output_plan import Input, Output, Plan
 from ffcgs_jax.physics import protocols as physics_protocols
 from ffcgs_jax.physics.config import ALL_PROTOCOLS, PROTOCOLS, PhysicsConfig
 from ffcgs_jax.synthesis.config import GraspConfig
@@ -144,7 +145,6 @@ def run_bench(cmd: BenchCmd) -> None:
 
     from ffcgs_jax.cli import benchmark
 
-    files.check_outputs(("--results", cmd.results or None), ("--json", cmd.json))  # "": print only
     if cmd.backend == "cpu":  # before JAX starts a backend
         jax.config.update("jax_platforms", "cpu")
     elif cmd.backend == "gpu" and jax.default_backend() != "gpu":
@@ -154,10 +154,10 @@ def run_bench(cmd: BenchCmd) -> None:
     print(benchmark.markdown(report))
     if cmd.results:
         benchmark.write_results(cmd.results, report)
-        print(f"wrote {cmd.results} (block '{benchmark.machine_key(report['machine'], cmd.hand)}')")
+        files.announce(f"wrote {cmd.results} (block '{benchmark.machine_key(report['machine'], cmd.hand)}')")
     if cmd.json:
         benchmark.save_json(report, cmd.json)
-        print(f"wrote {cmd.json}")
+        files.announce(f"wrote {cmd.json}")
 
 
 def run_objects(cmd: ObjectsCmd) -> None:
@@ -172,21 +172,20 @@ def run_objects(cmd: ObjectsCmd) -> None:
 def run_sdf(cmd: SdfCmd) -> None:
     from ffcgs_jax.geometry import mesh_io, sdf
 
-    files.check_outputs(("--out", cmd.out), ("--png", cmd.png))
     mesh = mesh_io.load_mesh(cmd.object, scale=cmd.sdf.scale)
     t0 = time.perf_counter()
     grid = sdf.build_sdf(mesh, cmd.sdf)
     dt = time.perf_counter() - t0
     sdf.save(grid, cmd.out)
     r = cmd.sdf.res
-    print(f"wrote {cmd.out}: {r}^3 Gradient-SDF of {cmd.object}, voxel {float(grid.voxel_size) * 1000:.2f} mm, "
+    files.announce(f"wrote {cmd.out}: {r}^3 Gradient-SDF of {cmd.object}, voxel {float(grid.voxel_size) * 1000:.2f} mm, "
           f"built in {dt:.2f} s")
     if cmd.png:
         from ffcgs_jax.viz.render import save_png
         from ffcgs_jax.viz.sdf_plot import slices_image
 
         save_png(slices_image(grid), cmd.png)
-        print(f"wrote {cmd.png}")
+        files.announce(f"wrote {cmd.png}")
 
 
 def run_hand(cmd: HandCmd) -> None:
@@ -195,7 +194,6 @@ def run_hand(cmd: HandCmd) -> None:
 
     if not 0 <= cmd.close <= 1:
         raise FfcgsError(f"--close must be in [0, 1], got {cmd.close}")
-    files.check_outputs(("--png", cmd.png))
     unknown = [v for v in cmd.views if v not in render.VIEWS]
     if unknown or not cmd.views:
         raise FfcgsError(f"--views: unknown view(s) {unknown}; valid: {', '.join(render.VIEWS)}")
@@ -229,7 +227,7 @@ def run_hand(cmd: HandCmd) -> None:
     print(f"{'contact site':<14} {'x (m)':>9} {'y (m)':>9} {'z (m)':>9}")
     for name, p in zip(hand.spec.contact_sites, contacts):
         print(f"{name:<14} {p[0]:>9.4f} {p[1]:>9.4f} {p[2]:>9.4f}")
-    print(f"wrote {cmd.png} ({backend} renderer)")
+    files.announce(f"wrote {cmd.png} ({backend} renderer)")
 
 
 def pose_from_xyzrpy(v) -> np.ndarray:
@@ -315,7 +313,6 @@ def run_grasp(cmd: GraspCmd) -> None:
     from ffcgs_jax.synthesis.grasp import check_on_mesh, summary_rows, synthesize
 
     cmd.check_inputs()
-    files.check_outputs(("--out", cmd.out), ("--mcap", cmd.mcap), ("--png", cmd.png))
     hand = K.load_hand(cmd.hand)
     mesh = None if cmd.object is None else mesh_io.load_mesh(cmd.object, scale=cmd.grasp.sdf.scale)
     poses = None if cmd.poses is None else _read_poses(cmd.poses)
@@ -352,19 +349,21 @@ def run_grasp(cmd: GraspCmd) -> None:
         rows += physics_rows
     grasp_io.save_npz(gs, cmd.out)
     _print_rows(rows)
-    print(f"wrote {cmd.out}")
+    files.announce(f"wrote {cmd.out}")
     if cmd.mcap:
         grasp_io.write_mcap(gs, cmd.mcap, hand, rows, mesh=mesh if mesh is not None else fused.mesh)
-        print(f"wrote {cmd.mcap}")
+        files.announce(f"wrote {cmd.mcap}")
     if cmd.png:
         from ffcgs_jax.viz import grasp_plot, render
 
         image, _ = grasp_plot.grasps_image(hand, mesh if mesh is not None else fused.mesh, gs)
         render.save_png(image, cmd.png)
-        print(f"wrote {cmd.png}")
+        files.announce(f"wrote {cmd.png}")
     if cmd.show:
         from ffcgs_jax.cli.show_command import serve
         from ffcgs_jax.viz import viewer
+
+        files.commit_outputs()  # the view is served until Ctrl-C, which ends the process at once
 
         serve(viewer.show_grasps(gs, hand, mesh if mesh is not None else fused.mesh), 0.0)
 
@@ -453,8 +452,8 @@ class EvalCmd:
         _protocols(self.protocol)
         if self.scale is not None and not (math.isfinite(self.scale) and self.scale > 0):
             raise FfcgsError(f"--scale must be a finite number > 0, got {self.scale}")
-        if self.video is not None and Path(self.video).suffix.lower() not in (".gif", ".mp4"):
-            raise FfcgsError(f"--video must end in .gif or .mp4, got {self.video}")
+        if self.video_index is not None and self.video is None:
+            raise FfcgsError("--video-index chooses the grasp of --video; give --video FILE.gif too")
 
 
 def run_eval(cmd: EvalCmd) -> None:
@@ -468,7 +467,9 @@ def run_eval(cmd: EvalCmd) -> None:
     if missing:
         raise FfcgsError(f"{cmd.grasps} has no {' or '.join(missing)} array: is it a grasps.npz from ffcgs grasp?")
     out = cmd.out or cmd.grasps
-    files.check_outputs(("--out", out), ("--video", cmd.video))
+    if cmd.video_index is not None and not 0 <= cmd.video_index < len(data["q"]):  # before the physics run
+        raise FfcgsError(f"--video-index must be in [0, {len(data['q']) - 1}] ({cmd.grasps} holds "
+                         f"{len(data['q'])} grasps), got {cmd.video_index}")
     name, scale = recorded_object(cmd, data, objects.names())
     spec = hand_spec.load_spec(cmd.hand)
     mesh = mesh_io.load_mesh(name, scale=scale)
@@ -503,7 +504,7 @@ def run_eval(cmd: EvalCmd) -> None:
     rows.append(("grasps tested", f"{len(idx)} ({'all' if cmd.all else 'valid'}) in {seconds:.1f} s, "
                  f"{len(idx) * len(protocols) / seconds:.2f} trials/s, backend {backend}"))
     _print_rows(rows)
-    print(f"wrote {out}")
+    files.announce(f"wrote {out}")
     if cmd.video:
         from ffcgs_jax.physics import video as physics_video
 
@@ -511,14 +512,12 @@ def run_eval(cmd: EvalCmd) -> None:
         pick = cmd.video_index
         if pick is None:
             pick = int(idx[np.argmax(first)]) if first.any() else int(idx[0])
-        if not 0 <= pick < n:
-            raise FfcgsError(f"--video-index must be in [0, {n - 1}], got {pick}")
         scene = physics.scenes(spec, mesh, cmd.physics, protocols[:1])[protocols[0]]
         batch, _, _ = physics.prepare(scene, mesh, data["wrist_pose"][pick:pick + 1], data["q"][pick:pick + 1],
                                       cmd.physics, None if squeeze is None else squeeze[pick:pick + 1])
         frames = physics_video.record(scene, batch, 0, cmd.physics, protocols[0], cmd.video,
                                       title=f"{protocols[0]}  grasp {pick}")
-        print(f"wrote {cmd.video} (grasp {pick}, {protocols[0]}, {frames} frames)")
+        files.announce(f"wrote {cmd.video} (grasp {pick}, {protocols[0]}, {frames} frames)")
 
 
 def _read_poses(path: str) -> np.ndarray:
@@ -531,6 +530,39 @@ def _read_poses(path: str) -> np.ndarray:
 
     return check_wrist_poses(data, f"wrist poses in {p}").reshape(-1, 4, 4)
 
+
+def _weights(g: GraspConfig) -> Input:
+    return Input("--sampling.weights", g.sampling.weights or None)
+
+
+# What each command reads and writes (`output_plan`), checked before it runs.
+PLANS: dict[str, Callable[..., Plan]] = {
+    "grasp": lambda c: Plan((Input("object", c.object), Input("--depth", c.depth), Input("--poses", c.poses),
+                             Input("--hand", c.hand), _weights(c.grasp)),
+                            (Output("--out", c.out, "npz"), Output("--mcap", c.mcap, "mcap"),
+                             Output("--png", c.png, "png"))),
+    "eval": lambda c: Plan((Input("grasps", c.grasps, updated=True), Input("--object", c.object),
+                            Input("--hand", c.hand)),
+                           (Output("--out", c.out or c.grasps, "npz"), Output("--video", c.video, "video"))),
+    "bench": lambda c: Plan((Input("--object", c.object), Input("--whole-object", c.whole_object or None),
+                             Input("--hand", c.hand)),
+                            (Output("--results", c.results or None, "markdown"), Output("--json", c.json, "json"))),
+    "objects": lambda c: Plan(),
+    "sdf": lambda c: Plan((Input("object", c.object),), (Output("--out", c.out, "npz"), Output("--png", c.png, "png"))),
+    "hand": lambda c: Plan((Input("--object", c.object), Input("--hand", c.hand)), (Output("--png", c.png, "png"),)),
+    "render-depth": lambda c: Plan((Input("object", c.object),),
+                                   (Output("--out", c.out, "folder"), Output("--png", c.png, "png")), c.overwrite),
+    "fuse": lambda c: Plan((Input("frames", c.frames),), (Output("--out", c.out, "npz"), Output("--png", c.png, "png"),
+                                                          Output("--mesh", c.mesh, "mesh"))),
+    "show": lambda c: Plan((Input("grasps", c.grasps), Input("--object", c.object), Input("--hand", c.hand))),
+    "dataset build": lambda c: Plan((Input("--objects", c.objects or None), Input("--hand", c.hand)),
+                                    (Output("--out", c.out, "mcap"),)),
+    "dataset info": lambda c: Plan((Input("dataset", c.dataset), Input("--objects", c.objects)),
+                                   (Output("--json", c.json, "json"), Output("--png", c.png, "folder")), c.overwrite),
+    "dataset export": lambda c: Plan((Input("dataset", c.dataset),),
+                                     (Output("--out", c.out, "npz" if c.out.lower().endswith(".npz") else "folder"),),
+                                     c.overwrite),
+}
 
 COMMANDS: dict[str, tuple[type, Callable]] = {
     "grasp": (GraspCmd, run_grasp),

@@ -22,6 +22,7 @@ class DatasetInfoCmd:
             shapes are regenerated without it.
         per_object: grasps drawn per object.
         json: also write the statistics to this JSON file.
+        overwrite: replace the `--png` folder whole even when it holds files that no `dataset info` run wrote.
     """
 
     dataset: tyro.conf.Positional[str] = tyro.MISSING
@@ -29,6 +30,7 @@ class DatasetInfoCmd:
     objects: str | None = None
     per_object: int = 4
     json: str | None = None
+    overwrite: bool = False
 
     def check(self) -> None:
         if not 1 <= self.per_object <= 64:
@@ -42,17 +44,18 @@ class DatasetExportCmd:
     Attributes:
         dataset: the .mcap file `ffcgs dataset build` wrote.
         out: FILE.npz (the records stacked; grasp_start and grasp_record index each record's grasps) or a folder
-            (one <record_id>.npz per record). Fields: ffcgs_jax/dataset/export.py.
+            (one <record_id>.npz per record, replacing the folder whole). Fields: ffcgs_jax/dataset/export.py.
+        overwrite: replace an `--out` folder whole even when it holds files that no `dataset export` run wrote.
     """
 
     dataset: tyro.conf.Positional[str] = tyro.MISSING
     out: str = tyro.MISSING
+    overwrite: bool = False
 
 
 def run_dataset_build(cfg: DatasetConfig) -> None:
     from ffcgs_jax.dataset import build as dataset_build
 
-    files.check_outputs(("--out", cfg.out))
     r = dataset_build.build(cfg)
     done = f"{r['built']} objects built, {r['skipped']} already done, {r['seconds']:.0f} s (timing in {r['timing']})"
     if r.get("partial"):
@@ -67,17 +70,15 @@ def run_dataset_build(cfg: DatasetConfig) -> None:
 def run_dataset_info(cmd: DatasetInfoCmd) -> None:
     from ffcgs_jax.dataset import stats as dataset_stats
 
-    files.check_outputs(("--json", cmd.json))
-    if cmd.png:
-        files.check_folder(cmd.png, "--png")
     stats = dataset_stats.stats(cmd.dataset)
     print(dataset_stats.format_stats(stats))
     if cmd.json:
         files.write_text(cmd.json, json.dumps(stats, indent=1))
-        print(f"wrote {cmd.json}")
+        files.announce(f"wrote {cmd.json}")
     if cmd.png:
-        written, skipped = dataset_stats.gallery(cmd.dataset, cmd.png, cmd.per_object, cmd.objects)
-        print(f"wrote {len(written)} gallery picture(s) to {cmd.png}")
+        with files.write_folder(cmd.png, "ffcgs dataset info") as tmp:
+            written, skipped = dataset_stats.gallery(cmd.dataset, tmp, cmd.per_object, cmd.objects)
+        files.announce(f"wrote {len(written)} gallery picture(s) to {cmd.png}")
         if skipped:
             print(f"no picture for {len(skipped)} object(s) without grasps or mesh (pass --objects DIR): "
                   f"{', '.join(skipped[:8])}{' ...' if len(skipped) > 8 else ''}")
@@ -86,6 +87,11 @@ def run_dataset_info(cmd: DatasetInfoCmd) -> None:
 def run_dataset_export(cmd: DatasetExportCmd) -> None:
     from ffcgs_jax.dataset import export
 
-    r = export.export(cmd.dataset, cmd.out)
-    where = cmd.out if cmd.out.endswith(".npz") else f"{len(r['files'])} files to {cmd.out}"
-    print(f"wrote {where}: {r['records']} records, {r['grasps']} grasps")
+    if cmd.out.lower().endswith(".npz"):
+        r = export.export(cmd.dataset, cmd.out)
+        where = cmd.out
+    else:
+        with files.write_folder(cmd.out, "ffcgs dataset export") as tmp:
+            r = export.export(cmd.dataset, tmp)
+        where = f"{len(r['files'])} files to {cmd.out}"
+    files.announce(f"wrote {where}: {r['records']} records, {r['grasps']} grasps")

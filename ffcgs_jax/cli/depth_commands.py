@@ -32,6 +32,9 @@ class RenderDepthCmd:
         seed: noise seed.
         scale: multiplies the object's coordinates (0.001 for millimetre meshes).
         png: also draw the depth images side by side to this PNG.
+        overwrite: replace `out` whole even when it holds files that no `render-depth` run wrote (without it such a
+            folder is refused; a folder an earlier run wrote is always replaced whole, so no stale frame or mask
+            of that run stays behind).
     """
 
     object: tyro.conf.Positional[str] = tyro.MISSING
@@ -46,6 +49,7 @@ class RenderDepthCmd:
     seed: int = 0
     scale: float = 1.0
     png: str | None = None
+    overwrite: bool = False
 
     def check(self) -> None:
         from ffcgs_jax.config import check_integer, check_range
@@ -61,16 +65,15 @@ def run_render_depth(cmd: RenderDepthCmd) -> None:
     from ffcgs_jax import files
     from ffcgs_jax.geometry import depth_io, depth_render, mesh_io
 
-    if cmd.png:
-        files.check_output(cmd.png, "--png")
     mesh = mesh_io.load_mesh(cmd.object, scale=cmd.scale)
     t0 = time.perf_counter()
     frames = depth_render.render_views(mesh, cmd.views, cmd.width, cmd.height, cmd.noise, cmd.seed,
                                        elevation_deg=cmd.elevation, distance=cmd.distance)
     seconds = time.perf_counter() - t0
     written = frames if cmd.masks else frames._replace(mask=None)
-    folder = depth_io.write_frames(cmd.out, written)
-    print(f"wrote {folder}: {cmd.views} depth frames of {cmd.object}, {cmd.width}x{cmd.height}, "
+    with files.write_folder(cmd.out, "ffcgs render-depth") as tmp:  # swapped in whole: no stale frame survives
+        depth_io.write_frames(tmp, written)
+    files.announce(f"wrote {cmd.out}: {cmd.views} depth frames of {cmd.object}, {cmd.width}x{cmd.height}, "
           f"{'noisy' if cmd.noise else 'exact'}, {'with' if cmd.masks else 'without'} masks, table at z = "
           f"{float(mesh.bounds[0, 2]):.4f} m (rendered in {seconds:.1f} s)")
     if cmd.png:
@@ -78,7 +81,7 @@ def run_render_depth(cmd: RenderDepthCmd) -> None:
         from ffcgs_jax.viz.render import save_png
 
         save_png(frames_image(frames), cmd.png)
-        print(f"wrote {cmd.png}")
+        files.announce(f"wrote {cmd.png}")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -112,8 +115,6 @@ class FuseCmd:
 
         check_integer("--res", self.res, 16, 128)
         check_range("--trunc", self.trunc, 1.0, 16.0)
-        if self.mesh is not None and not self.mesh.lower().endswith((".ply", ".obj", ".stl")):
-            raise FfcgsError(f"--mesh must end in .ply, .obj or .stl, got {self.mesh}")
 
 
 def bounds_box(bounds) -> np.ndarray | None:
@@ -147,20 +148,17 @@ def run_fuse(cmd: FuseCmd) -> None:
     from ffcgs_jax import files
     from ffcgs_jax.geometry import depth_object, sdf
 
-    for flag, path in (("--out", cmd.out), ("--png", cmd.png), ("--mesh", cmd.mesh)):
-        if path is not None:
-            files.check_output(path, flag)
     fo = depth_object.from_depth(cmd.frames, cmd.res, cmd.table_z, bounds_box(cmd.bounds), cmd.trunc)
     sdf.save(fo.grid, cmd.out)
     for k, v in fuse_rows(fo, cmd.frames):
         print(f"{k:<18} {v}")
-    print(f"wrote {cmd.out}")
+    files.announce(f"wrote {cmd.out}")
     if cmd.png:
         from ffcgs_jax.viz.render import save_png
         from ffcgs_jax.viz.sdf_plot import slices_image
 
         save_png(slices_image(fo.grid), cmd.png)
-        print(f"wrote {cmd.png}")
+        files.announce(f"wrote {cmd.png}")
     if cmd.mesh:
         files.atomic_write(cmd.mesh, lambda f: fo.mesh.export(f, file_type=cmd.mesh.rsplit(".", 1)[1].lower()))
-        print(f"wrote {cmd.mesh}")
+        files.announce(f"wrote {cmd.mesh}")

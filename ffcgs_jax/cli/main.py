@@ -11,7 +11,7 @@ import threading
 import warnings
 
 from ffcgs_jax import files
-from ffcgs_jax.cli.commands import COMMANDS
+from ffcgs_jax.cli.commands import COMMANDS, PLANS
 from ffcgs_jax.config import with_overrides
 from ffcgs_jax.errors import FfcgsError
 
@@ -36,7 +36,13 @@ def _train_summary() -> str:
 
 
 def parse(argv: list[str]):
-    """Parse `ffcgs COMMAND ...` into (run function, command dataclass)."""
+    """Parse `ffcgs COMMAND ...` into (run function, command dataclass); `parse_command` also gives its name."""
+    _, fn, cmd = parse_command(argv)
+    return fn, cmd
+
+
+def parse_command(argv: list[str]):
+    """Parse `ffcgs COMMAND ...` into (command name, run function, command dataclass)."""
     if not argv or argv[0] in ("-h", "--help"):
         print(_usage())
         raise SystemExit(0 if argv else 2)
@@ -52,7 +58,7 @@ def parse(argv: list[str]):
     if name == "grasp":
         argv = _object_flag_as_positional(argv)
     cmd = with_overrides(cls, argv, f"ffcgs {name}", keep_prefixes=name in _PREFIXED)
-    return fn, cmd
+    return name, fn, cmd
 
 
 def _object_flag_as_positional(argv: list[str]) -> list[str]:
@@ -104,11 +110,14 @@ def main(argv: list[str] | None = None) -> int:
 
 def _run(argv: list[str]) -> int:
     try:
-        fn, cmd = parse(argv)
+        name, fn, cmd = parse_command(argv)
+        plan = PLANS[name](cmd)
+        plan.check()  # before anything is loaded or compiled: no output over an input or another output
         from ffcgs_jax.cli import jax_cache  # imports JAX: not before parsing, so --help stays quick
 
         jax_cache.enable()  # a second run loads its executables from disk (FFCGS_JAX_CACHE=off: compile every time)
-        fn(cmd)
+        with plan.outputs_together():  # all of the command's outputs, or none
+            fn(cmd)
     except FfcgsError as e:
         print(f"ffcgs: error: {e}", file=sys.stderr)
         return 2

@@ -42,7 +42,7 @@ def export(dataset: str | Path, out: str | Path) -> dict:
     """Write `dataset`'s records to `out` (module docstring); {"records", "grasps", "files"} (paths written)."""
     dataset, out = Path(dataset), Path(out).expanduser()
     config_json = _config_json(dataset)
-    if out.suffix == ".npz":
+    if out.suffix.lower() == ".npz":
         files.check_output(out, "--out")
         arrays = _stacked(dataset, mcap_io.iter_records(dataset))
         arrays.update(config_json=np.array(config_json), format=np.array(FORMAT))

@@ -196,8 +196,15 @@ def _read_camera(path: pathlib.Path) -> dict[str, float]:
     return cam
 
 
+def _listed(folder: pathlib.Path) -> list[pathlib.Path]:
+    """The folder's files; only those its manifest names when a run of ours wrote it (`files.manifest_files`),
+    so a file left there by anything else is never read as a frame or a mask."""
+    named = files.manifest_files(folder)
+    return [p for p in folder.iterdir() if p.is_file() and (named is None or p.name in named)]
+
+
 def _depth_files(folder: pathlib.Path) -> list[pathlib.Path]:
-    found = sorted(p for p in folder.iterdir() if p.is_file() and p.suffix.lower() in (".png", ".npy")
+    found = sorted(p for p in _listed(folder) if p.suffix.lower() in (".png", ".npy")
                    and not (p.suffix.lower() == ".png" and p.stem.endswith(_MASK)))
     if not found:
         raise FfcgsError(f"depth folder {folder} has no depth images (*.png or *.npy besides *{_MASK}.png)")
@@ -246,7 +253,7 @@ def _read_folder(folder: pathlib.Path) -> Frames:
             raise FfcgsError(f"{poses_path}: pose of {name} must be a 4x4 list of numbers") from None
         _check_pose(mat, f"{poses_path}: pose of {name}")
         mats.append(mat)
-    mask_files = {p.stem[:-len(_MASK)]: p for p in folder.glob(f"*{_MASK}.png")}
+    mask_files = {p.stem[:-len(_MASK)]: p for p in _listed(folder) if p.name.endswith(f"{_MASK}.png")}
     stems = [p.stem for p in images]
     orphan = sorted(set(mask_files) - set(stems))
     if orphan:

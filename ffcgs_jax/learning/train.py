@@ -151,6 +151,20 @@ def _weights_meta(cfg: TrainConfig, hand: str, extra: dict) -> dict:
             "train": {"config": to_toml(cfg)} | extra}
 
 
+def _check_run_folder(out: Path, cfg_path: Path, ckpt_path: Path, text: str) -> None:
+    """`out` may be new, empty, or this configuration's run (resumed); a file, another configuration's run, or a
+    folder of other files is refused before anything is written."""
+    if out.exists() and not out.is_dir():
+        raise FfcgsError(f"--out {out} is a file; a training run writes a folder (config.toml, checkpoint.npz, "
+                         "weights.npz, ...)")
+    if ckpt_path.is_file() and cfg_path.is_file() and cfg_path.read_text() != text:
+        raise FfcgsError(f"{out} holds a run with a different config ({cfg_path}); resume it with --config "
+                         f"{cfg_path} or choose another --out")
+    if out.is_dir() and not cfg_path.is_file() and any(p.is_file() for p in out.iterdir()):
+        raise FfcgsError(f"--out {out} holds files but no training run (no config.toml); choose a new or empty "
+                         "folder")
+
+
 def train(cfg: TrainConfig, hand: str | None = None, progress: bool = True, until_epoch: int | None = None,
           data: cvae_data.TrainData | None = None) -> dict | None:
     """Train one configuration (one fold); see the module docstring. Returns a summary dict (also in summary.json).
@@ -161,14 +175,11 @@ def train(cfg: TrainConfig, hand: str | None = None, progress: bool = True, unti
     `until_epoch` stops after that many epochs, checkpointed, as an interruption would (time-boxed sessions,
     tests); returns None then, and a later call with the same config continues."""
     out = Path(cfg.out)
-    out.mkdir(parents=True, exist_ok=True)
     text = to_toml(cfg)
     cfg_path, ckpt_path, log_path = out / "config.toml", out / "checkpoint.npz", out / "metrics.jsonl"
-    if ckpt_path.is_file() and cfg_path.is_file() and cfg_path.read_text() != text:
-        raise FfcgsError(f"{out} holds a run with a different config ({cfg_path}); resume it with --config "
-                         f"{cfg_path} or choose another --out")
-    files.write_text(cfg_path, text)
-
+    _check_run_folder(out, cfg_path, ckpt_path, text)
+    # Everything that can refuse the run comes before its first write: a failed start leaves an existing run (and
+    # a new --out) exactly as it was.
     if data is None:
         data = cvae_data.load(cfg.data.path, cfg.data.noisy)
     if data.res != cfg.model.res:
@@ -179,12 +190,14 @@ def train(cfg: TrainConfig, hand: str | None = None, progress: bool = True, unti
     o, k = cfg.optim, cfg.data.grasps_per_sdf
     steps_per_epoch = cvae_data.steps_per_epoch(data, train_recs, o.batch, k)
     total = steps_per_epoch * o.epochs
+    tree, meta = checkpoint.load(ckpt_path) if ckpt_path.is_file() else (None, None)
+    files.check_folder(out, "--out")
+    files.write_text(cfg_path, text)
 
     params = cvae.init(jax.random.key(cfg.seed), cfg.model)
     opt = adam_init(params)
     start_epoch = 0
-    if ckpt_path.is_file():
-        tree, meta = checkpoint.load(ckpt_path)
+    if tree is not None:
         params, opt = tree["params"], AdamState(tree["opt"]["count"], tree["opt"]["mu"], tree["opt"]["nu"])
         params, opt = jax.tree.map(jnp.asarray, (params, opt))
         start_epoch = int(meta["epoch"])

@@ -118,7 +118,7 @@ CASES = [
     (["eval", "good.npz", "--scale", "-1"], "--scale must be a finite number > 0"),
     (["eval", "good.npz", "--protocol", "jump"], "unknown protocol 'jump'"),
     (["eval", "good.npz", "--backend", "tpu"], "unknown physics backend 'tpu'"),
-    (["eval", "good.npz", "--video", "trial.avi"], "--video must end in .gif or .mp4"),
+    (["eval", "good.npz", "--video", "trial.avi"], "--video trial.avi: .* must end in .gif or .mp4"),
     (["eval", "good.npz", "--friction", "-1"], r"physics.friction must be in \[0.0, 10.0\]"),
     (["eval", "good.npz", "--out", "a_file/out.npz"], "a file stands where its folder should be"),
     (["eval", "good.npz", "--video", "a_file/v.gif"], "--video a_file/v.gif"),
