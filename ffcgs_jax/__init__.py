@@ -8,6 +8,7 @@ The public API is the handful of names below; each is imported on first use, so 
     import ffcgs_jax as fj
     hand, mesh = fj.load_hand("svh"), fj.load_mesh("mug")
     gs = fj.synthesize(hand, mesh, fj.GraspConfig(n=32))
+    gs = fj.validate(hand, mesh, gs)   # physics-checked: the grasps that hold first (gs.order())
 """
 
 import importlib
@@ -23,6 +24,8 @@ _API = {
     "from_depth": ("ffcgs_jax.geometry.depth_object", "from_depth"),
     "synthesize": ("ffcgs_jax.synthesis.grasp", "synthesize"),
     "evaluate_physics": ("ffcgs_jax.physics.runner", "evaluate"),
+    "validate": ("ffcgs_jax.physics.validate", "validate"),
+    "GraspSet": ("ffcgs_jax.synthesis.grasp", "GraspSet"),
     "GraspConfig": ("ffcgs_jax.synthesis.config", "GraspConfig"),
     "OptimConfig": ("ffcgs_jax.synthesis.config", "OptimConfig"),
     "EnergyConfig": ("ffcgs_jax.synthesis.config", "EnergyConfig"),
@@ -43,8 +46,9 @@ if TYPE_CHECKING:  # what the lazy names are, for type checkers and editors
     from ffcgs_jax.hand.kinematics import load_hand  # noqa: F401
     from ffcgs_jax.physics.config import PhysicsConfig  # noqa: F401
     from ffcgs_jax.physics.runner import evaluate as evaluate_physics  # noqa: F401
+    from ffcgs_jax.physics.validate import validate  # noqa: F401
     from ffcgs_jax.synthesis.config import EnergyConfig, GraspConfig, OptimConfig  # noqa: F401
-    from ffcgs_jax.synthesis.grasp import synthesize  # noqa: F401
+    from ffcgs_jax.synthesis.grasp import GraspSet, synthesize  # noqa: F401
 
 
 def __getattr__(name: str):

@@ -345,7 +345,7 @@ def run_grasp(cmd: GraspCmd) -> None:
             gs.arrays.update(check_on_mesh(hand, mesh, gs, grid))
             rows += true_mesh_rows(gs)
     if cmd.validate:
-        gs, physics_rows = _validate(gs, hand.spec, mesh, cmd)
+        gs, physics_rows = _validate(gs, hand, mesh, cmd)
         rows += physics_rows
     grasp_io.save_npz(gs, cmd.out)
     _print_rows(rows)
@@ -368,38 +368,28 @@ def run_grasp(cmd: GraspCmd) -> None:
         serve(viewer.show_grasps(gs, hand, mesh if mesh is not None else fused.mesh), 0.0)
 
 
-def _validate(gs, spec, mesh, cmd: GraspCmd):
-    """Physics-test the valid grasps and keep only those that pass every protocol asked for."""
+def _validate(gs, hand, mesh, cmd: GraspCmd):
+    """The grasps physics-checked and ranked, those that pass every protocol asked for first
+    (`physics.validate`)."""
+    from ffcgs_jax.physics import validate as physics_validate
 
     protocols = _protocols(cmd.protocol)
-    idx = np.flatnonzero(gs["valid"])
-    if len(idx) == 0:
-        return gs.select(idx), [("kept after --validate", "0 of 0 valid grasps")]
-    t0 = time.perf_counter()
-    squeeze = gs.arrays.get("squeeze_dir")
-    res, backend = _run_physics(spec, mesh, gs["wrist_pose"][idx], gs["q"][idx], cmd.physics, protocols,
-                                None if squeeze is None else squeeze[idx])
-    passed = np.logical_and.reduce([res[physics_protocols.result_key(p, "success")] for p in protocols])
-    kept = gs.select(idx[passed])
-    for k, v in res.items():
-        kept.arrays[k] = v[passed]
-    rows = physics_protocols.summary_rows(res, protocols)
-    rows.append(("kept after --validate", f"{int(passed.sum())} of {len(idx)} valid grasps"
-                 f" ({time.perf_counter() - t0:.1f} s, physics backend {backend})"))
-    return kept, rows
+    gs = dataclasses.replace(gs, arrays=_physics_check(hand.spec, mesh, gs.arrays, gs["valid"], cmd.physics,
+                                                       protocols))
+    return gs, physics_validate.summary_rows(gs, protocols)
 
 
-def _run_physics(spec, mesh, wrist_pose, q, cfg: PhysicsConfig, protocols, squeeze_dir=None) -> tuple[dict, str]:
-    """The physics results and the backend that ran them (`cfg.backend` resolved; a fallback is said on stderr).
-    `squeeze_dir`: the grasps' own (a grasp file's), else the physics test computes it."""
+def _physics_check(spec, mesh, arrays: dict, tested: np.ndarray, cfg: PhysicsConfig, protocols) -> dict:
+    """`physics.validate.check` with a progress bar, `cfg.backend` resolved here so that a fallback from "auto" is
+    said on stderr."""
     from tqdm import tqdm
 
-    from ffcgs_jax.physics import runner as physics
+    from ffcgs_jax.physics import validate as physics_validate
 
-    backend = physics_backend(cfg, len(q))
-    with tqdm(total=len(q) * len(protocols), desc="physics", unit="grasp", disable=None, leave=False) as bar:
-        return physics.evaluate(spec, mesh, wrist_pose, q, cfg, protocols, backend, progress=bar.update,
-                                squeeze_dir=squeeze_dir), backend
+    n = int(np.sum(tested))
+    cfg = dataclasses.replace(cfg, backend=physics_backend(cfg, n))
+    with tqdm(total=n * len(protocols), desc="physics", unit="grasp", disable=None, leave=False) as bar:
+        return physics_validate.check(spec, mesh, arrays, tested, protocols, cfg, progress=bar.update)
 
 
 def physics_backend(cfg: PhysicsConfig, n: int) -> str:
@@ -484,20 +474,12 @@ def run_eval(cmd: EvalCmd) -> None:
     idx = np.arange(len(valid)) if cmd.all else np.flatnonzero(valid)
     if len(idx) == 0:
         raise FfcgsError(f"{cmd.grasps} has no valid grasps to test (use --all to test them anyway)")
-    t0 = time.perf_counter()
     # files from before squeeze_dir was recorded: the physics test derives it from the fingertips near the mesh
     squeeze = data.get("squeeze_dir")
-    res, backend = _run_physics(spec, mesh, data["wrist_pose"][idx], data["q"][idx], cmd.physics, protocols,
-                                None if squeeze is None else squeeze[idx])
-    seconds = time.perf_counter() - t0
+    data = _physics_check(spec, mesh, data, np.isin(np.arange(len(valid)), idx), cmd.physics, protocols)
+    seconds, backend = float(data["physics_s"]), str(data["physics_backend"])
     n = len(valid)
-    for k, v in res.items():  # grasps not tested get NaN / False / reason -1
-        full = np.full((n, *v.shape[1:]), False if v.dtype == bool else (-1 if v.dtype.kind == "i" else np.nan),
-                       dtype=v.dtype)
-        full[idx] = v
-        data[k] = full
-    data["physics_tested"] = np.isin(np.arange(n), idx)
-    data["physics_config_json"] = np.array(json.dumps(dataclasses.asdict(cmd.physics)))
+    res = {k: data[k][idx] for k in data if k.endswith(("_success", "_reason")) and np.ndim(data[k])}
     data.update({f"physics_{k}": v for k, v in simulated.items()})
     grasp_io.save_arrays(data, out)
     rows = physics_protocols.summary_rows(res, protocols)

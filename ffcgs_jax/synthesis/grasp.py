@@ -21,7 +21,7 @@ from jax.sharding import PartitionSpec as P
 
 from ffcgs_jax.config import check_all
 from ffcgs_jax.errors import FfcgsError
-from ffcgs_jax.evaluation import device_metrics, metrics, score
+from ffcgs_jax.evaluation import device_metrics, metrics, ranking, score
 from ffcgs_jax.geometry import sdf as sdf_mod
 from ffcgs_jax.hand import kinematics as K
 from ffcgs_jax.hand.kinematics import Hand
@@ -136,12 +136,13 @@ class GraspSet:
         return GraspSet(arrays, {k: v[:, idx] for k, v in self.trace.items()}, self.config, self.object_name)
 
     def order(self) -> np.ndarray:
-        """Grasp indices, valid ones first, each group by increasing E, ties by index: the same grasps give the same
-        order. Not by `score`: within one object, E ranked physics outcomes better on the YCB training objects
-        (`bench/fit_score.py`: top-1 40.0 % against 37.1 % leave-one-object-out; bench/RESULTS.md, "Grasp quality"); `score` is the
-        calibrated chance of passing, for comparing grasps across objects and for thresholds."""
-        n = len(self["valid"])
-        return np.lexsort((np.arange(n), self["E"], ~self["valid"]))
+        """Grasp indices in the offered order (`evaluation.ranking.ranked`): those that passed the physics check
+        first when it ran (`physics.validate`), then valid ones, each group by increasing E, ties by index: the same
+        grasps give the same order. Not by `score`: within one object, E ranked physics outcomes better on the YCB
+        training objects (`bench/fit_score.py`: top-1 40.0 % against 37.1 % leave-one-object-out;
+        bench/RESULTS.md, "Grasp quality"); `score` is the calibrated chance of passing, for comparing grasps across
+        objects and for thresholds."""
+        return ranking.ranked(self.arrays)
 
 
 def synthesize(hand: Hand, mesh: trimesh.Trimesh | sdf_mod.GradientSDF, cfg: GraspConfig = GraspConfig(),

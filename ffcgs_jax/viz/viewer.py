@@ -3,7 +3,7 @@
 The scene: the object mesh and the table; the hand at the selected grasp (its collision geoms, posed by the package's
 own forward kinematics, so the view shows what the optimiser and the filters saw); the fingertip contacts (green where
 a fingertip touches, within `contact_tol`, red where it does not) with the mesh's outward normals and friction cones;
-a slider that steps through the grasps in ranked order (valid first, then by E, as `GraspSet.order`); the hand's
+a slider that steps through the grasps in ranked order (`evaluation.ranking`, as `GraspSet.order`); the hand's
 colour says the physics outcome when the file has one (green: every protocol run held, orange: some, red: none,
 grey: not tested; blue without physics). On demand: the SDF's zero level, a horizontal slice of the SDF, and the
 wrist poses the sampler drew before the optimisation (the same sampler, seed and grid as the file's config, which
@@ -19,6 +19,7 @@ import numpy as np
 import trimesh
 
 from ffcgs_jax.errors import FfcgsError
+from ffcgs_jax.evaluation.ranking import ranked
 from ffcgs_jax.hand import kinematics as K
 
 PROTOCOL_KEYS = ("lift_shake_success", "six_dir_success", "dexgraspbench_success")
@@ -34,14 +35,6 @@ def _viser():
     except ImportError:
         raise FfcgsError("the 3D viewer needs viser: pip install -e \".[viz]\" (or pip install viser)") from None
     return viser
-
-
-def ranked(data: dict) -> np.ndarray:
-    """Grasp indices, valid ones first, each group by increasing E, ties by index (`GraspSet.order`)."""
-    n = len(data["q"])
-    valid = np.asarray(data.get("valid", np.ones(n, bool)), bool)
-    E = np.asarray(data.get("E", np.zeros(n)), float)
-    return np.lexsort((np.arange(n), E, ~valid))
 
 
 def outcome(data: dict, i: int) -> str:

@@ -12,6 +12,7 @@ import pytest
 import trimesh
 from PIL import Image
 
+from ffcgs_jax import files
 from ffcgs_jax.cli import main as cli_main
 from ffcgs_jax.evaluation import metrics
 from ffcgs_jax.geometry import depth_io, mesh_io, sdf
@@ -39,7 +40,8 @@ def frames_dir(tmp_path_factory):
 def test_render_depth_writes_the_documented_folder(frames_dir):
     folder = frames_dir / "frames"
     names = sorted(p.name for p in folder.iterdir())
-    assert names == ["camera.json", "poses.json"] + [f"view_{i:03d}.png" for i in range(4)]  # no masks by default
+    # no masks by default; the manifest names the files of this run (files.write_folder)
+    assert names == [files.MANIFEST, "camera.json", "poses.json"] + [f"view_{i:03d}.png" for i in range(4)]
     cam = json.loads((folder / "camera.json").read_text())
     assert (cam["width"], cam["height"]) == (W, H) and cam["depth_scale"] == 0.001
     frames = depth_io.load_frames(folder)

@@ -2,6 +2,7 @@
 intervals against SciPy, the convex decomposition and its cache, the object's inertia, and `ffcgs eval`."""
 
 import dataclasses
+import json
 
 import mujoco
 import numpy as np
@@ -11,12 +12,15 @@ import trimesh
 
 from ffcgs_jax.cli import commands as cli
 from ffcgs_jax.cli import main as cli_main
+from ffcgs_jax.errors import FfcgsError
+from ffcgs_jax.evaluation.ranking import ranked
 from ffcgs_jax.geometry import mesh_io
 from ffcgs_jax.hand import spec as hand_spec
 from ffcgs_jax.physics import backend_cpu, convex
 from ffcgs_jax.physics import config as physics_config
 from ffcgs_jax.physics import protocols as physics_protocols
 from ffcgs_jax.physics import runner as physics
+from ffcgs_jax.physics import validate as physics_validate
 from ffcgs_jax.physics.config import PhysicsConfig
 from ffcgs_jax.synthesis import grasp_io
 from ffcgs_jax.viz import scene
@@ -198,7 +202,7 @@ def test_eval_all_writes_out_and_keeps_the_input(capsys, ball_npz, tmp_path):
 @pytest.mark.parametrize("args,message", [
     (["missing.npz"], "grasp file not found"),
     (["{npz}", "--protocol", "drop"], "unknown protocol"),
-    (["{npz}", "--video", "x.avi"], "--video must end in .gif or .mp4"),
+    (["{npz}", "--video", "x.avi"], "so the name must end in .gif or .mp4"),
     (["{npz}", "--backend", "tpu"], "unknown physics backend"),
     (["{bare}"], "no wrist_pose or q"),
     (["{anon}"], "pass --object"),
@@ -213,35 +217,47 @@ def test_eval_bad_input_one_line(capsys, ball_npz, tmp_path, args, message):
     assert code == 2 and message in err and "Traceback" not in err and len(err.strip().splitlines()) == 1, err
 
 
-def test_validate_keeps_the_grasps_that_pass():
+def test_validate_puts_the_grasps_that_pass_first():
+    """Known outcomes: the enveloping grasp holds, the same grasp 5 cm off does not. The analytic order (valid,
+    then E) offers the failing one first; the physics-checked order the one that holds, and keeps every grasp."""
+    import ffcgs_jax as fj
     from ffcgs_jax.synthesis.config import GraspConfig
-    from ffcgs_jax.synthesis.grasp import GraspSet
 
     good, q = enveloping_ball_grasp()
     far, _ = enveloping_ball_grasp(shift=0.05)
-    arrays = {"wrist_pose": np.stack([good, far, good]), "q": np.stack([q, q, q]),
+    arrays = {"wrist_pose": np.stack([far, good, good]), "q": np.stack([q, q, q]),
               "valid": np.array([True, True, False]), "E": np.array([0.1, 0.2, 0.3]),
               "channel_names": np.array(SPEC.channel_names), "synthesis_s": np.array(1.0)}
-    gs = GraspSet(arrays, {"E": np.zeros((2, 3))}, GraspConfig(), "ball")
-    cmd = cli.GraspCmd(object="ball", validate=True, protocol="six-dir", physics=PhysicsConfig(friction=1.0))
-    kept, rows = cli._validate(gs, SPEC, BALL, cmd)
-    assert kept["E"].tolist() == [0.1] and kept.trace["E"].shape == (2, 1)
-    assert kept["six_dir_success"].tolist() == [True] and len(kept["channel_names"]) == 9
-    assert ("kept after --validate" in dict(rows)) and dict(rows)["kept after --validate"].startswith("1 of 2")
+    gs = fj.GraspSet(arrays, {"E": np.zeros((2, 3))}, GraspConfig(), "ball")
+    assert gs.order().tolist() == [0, 1, 2]
+    checked = fj.validate(SPEC, BALL, gs, ["six-dir"], PhysicsConfig(friction=1.0, backend="cpu"))
+    assert checked.order().tolist() == [1, 0, 2] and gs.order().tolist() == [0, 1, 2]  # the input is unchanged
+    assert checked["physics_passed"].tolist() == [False, True, False]
+    assert checked["physics_tested"].tolist() == [True, True, False]  # the invalid grasp is not simulated
+    assert checked["six_dir_success"].tolist() == [False, True, False] and checked["six_dir_reason"][2] == -1
+    assert json.loads(str(checked["physics_protocols"])) == ["six-dir"] and str(checked["physics_backend"]) == "cpu"
+    assert json.loads(str(checked["physics_config_json"]))["friction"] == 1.0
+    every = fj.validate(SPEC, BALL, gs, ["six-dir"], PhysicsConfig(friction=1.0, backend="cpu"), candidates="all")
+    assert every["physics_passed"].tolist() == [False, True, True] and every.order().tolist() == [1, 2, 0]
+    rows = dict(physics_validate.summary_rows(checked, ["six-dir"]))
+    assert rows["physics-checked"].startswith("1 of 2 tested grasps pass six-dir") and \
+        rows["physics-checked"].endswith("the first grasp passes")
+    with pytest.raises(FfcgsError, match="unknown protocol 'jump'"):
+        fj.validate(SPEC, BALL, gs, ["jump"])
 
 
-@pytest.mark.slow  # 60-70 s on two cores, mostly compiling; test_validate_keeps_the_grasps_that_pass covers the path
+@pytest.mark.slow  # 60-70 s on two cores, mostly compiling; test_validate_puts_the_grasps_that_pass_first covers it
 def test_grasp_validate_end_to_end(capsys, tmp_path):
     path = tmp_path / "v.npz"
     code, out, err = run(capsys, "grasp", "box", "--n", "4", "--iters", "5", "--res", "16", "--validate",
                          "--protocol", "six-dir", *SHORT, "--out", path)
     assert code == 0, err
-    line = next(l for l in out.splitlines() if l.startswith("kept after --validate"))
-    kept = int(line.split()[3])
+    line = next(l for l in out.splitlines() if l.startswith("physics-checked"))
+    passed = int(line.split()[1])
     a = grasp_io.load_npz(path)
-    assert len(a["q"]) == kept and a["valid"].all()
-    if kept:  # the short synthesis may leave no valid grasp; test_validate_keeps_the_grasps_that_pass covers that
-        assert a["six_dir_success"].all()
+    assert a["physics_passed"].sum() == passed and len(a["q"]) == 4  # every grasp kept, ranked
+    first = ranked(a)[0]
+    assert bool(a["physics_passed"][first]) == (passed > 0)
 
 
 @pytest.mark.parametrize("hand", ["svh", "allegro"])

@@ -1,0 +1,112 @@
+"""Physics-checked ranking: the way to ask for the best grasp of an object (`ffcgs grasp --validate`,
+`ffcgs_jax.validate`).
+
+The analytic order (valid, then by E) finds a grasp that holds on most objects but often does not put it first
+(bench/RESULTS.md, "Grasp quality"). `validate` simulates the candidates with the protocols asked for and ranks
+them: those that pass every protocol first, then the others, each group in the analytic order
+(`evaluation.ranking`). Nothing is dropped: the grasp set comes back whole, with the physics results per grasp and
+what was checked, so a file records which protocols, backend and settings judged it.
+"""
+
+import dataclasses
+import json
+import time
+from collections.abc import Callable
+
+import numpy as np
+import trimesh
+
+from ffcgs_jax.errors import FfcgsError
+from ffcgs_jax.evaluation import ranking
+from ffcgs_jax.hand.spec import HandSpec
+from ffcgs_jax.physics import protocols as physics_protocols
+from ffcgs_jax.physics import runner
+from ffcgs_jax.physics.config import ALL_PROTOCOLS, PROTOCOLS, PhysicsConfig
+
+
+def validate(hand, mesh: trimesh.Trimesh, grasps, protocols=PROTOCOLS, cfg: PhysicsConfig = PhysicsConfig(),
+             candidates: str = "valid", progress: Callable[[int], None] | None = None):
+    """Simulate `grasps` on `mesh` and return them ranked with the outcome first.
+
+    Args:
+        hand: the `Hand` the grasps were made with (or its `HandSpec`).
+        mesh: the object, in the grasps' object frame.
+        grasps: a `GraspSet` (from `synthesize` or `load_grasps`).
+        protocols: physics protocols, any of `physics.config.ALL_PROTOCOLS` ("lift-shake", "six-dir",
+            "dexgraspbench", ...); a grasp passes when it passes every one.
+        cfg: the physics settings; `cfg.backend` "auto" takes MuJoCo Warp where it is faster
+            (`runner.resolve_backend`).
+        candidates: "valid" simulates the grasps the synthesis marked valid (the others cannot come first and are
+            left untested), "all" every grasp.
+        progress: called with the number of trials done, as they finish.
+
+    Returns:
+        The same grasp set with, per grasp, the runner's results (`<protocol>_success`, `_reason`, `_move`, ...;
+        NaN / False / -1 where untested), `physics_tested` and `physics_passed` (tested and passed every
+        protocol), and the record of the check: `physics_protocols` (JSON list), `physics_backend`,
+        `physics_config_json`, `physics_s`. Its `order()` puts the grasps that passed first.
+    """
+    if candidates not in ("valid", "all"):
+        raise FfcgsError(f"candidates must be 'valid' or 'all', got {candidates!r}")
+    tested = np.ones(len(grasps["q"]), bool) if candidates == "all" else np.asarray(grasps["valid"], bool)
+    arrays = check(getattr(hand, "spec", hand), mesh, grasps.arrays, tested, protocols, cfg, progress)
+    return dataclasses.replace(grasps, arrays=arrays)
+
+
+def check(spec: HandSpec, mesh: trimesh.Trimesh, arrays: dict[str, np.ndarray], tested: np.ndarray, protocols,
+          cfg: PhysicsConfig = PhysicsConfig(), progress: Callable[[int], None] | None = None
+          ) -> dict[str, np.ndarray]:
+    """`validate` on a grasp file's arrays (`wrist_pose`, `q`, optional `squeeze_dir`): a copy with the results
+    of the grasps where `tested` is True and the record of the check added."""
+    protocols = tuple(protocols)
+    bad = [p for p in protocols if p not in ALL_PROTOCOLS]
+    if bad or not protocols:
+        raise FfcgsError(f"unknown protocol {bad[0]!r}; protocols: {', '.join(ALL_PROTOCOLS)}" if bad
+                         else "the physics check needs at least one protocol")
+    n = len(arrays["q"])
+    tested = np.asarray(tested, bool)
+    idx = np.flatnonzero(tested)
+    arrays = dict(arrays)
+    backend, _ = runner.resolve_backend(cfg.backend, max(len(idx), 1))
+    t0 = time.perf_counter()
+    if len(idx):
+        squeeze = arrays.get("squeeze_dir")
+        res = runner.evaluate(spec, mesh, arrays["wrist_pose"][idx], arrays["q"][idx], cfg, protocols, backend,
+                              progress=progress, squeeze_dir=None if squeeze is None else squeeze[idx])
+        arrays.update(spread(res, idx, n))
+    else:  # nothing to simulate: the record still says what would have judged them
+        arrays.update({physics_protocols.result_key(p, "success"): np.zeros(n, bool) for p in protocols})
+    passed = np.logical_and.reduce([arrays[physics_protocols.result_key(p, "success")] for p in protocols]) & tested
+    arrays.update(physics_tested=tested, physics_passed=passed,
+                  physics_protocols=np.array(json.dumps(list(protocols))), physics_backend=np.array(backend),
+                  physics_config_json=np.array(json.dumps(dataclasses.asdict(cfg))),
+                  physics_s=np.asarray(time.perf_counter() - t0, np.float64))
+    return arrays
+
+
+def spread(results: dict[str, np.ndarray], idx: np.ndarray, n: int) -> dict[str, np.ndarray]:
+    """Per-grasp physics results of the grasps at `idx` as arrays over all `n` grasps; the grasps not tested get
+    NaN (floats), False (flags) or -1 (reasons)."""
+    out = {}
+    for k, v in results.items():
+        fill = False if v.dtype == bool else (-1 if v.dtype.kind == "i" else np.nan)
+        full = np.full((n, *v.shape[1:]), fill, dtype=v.dtype)
+        full[idx] = v
+        out[k] = full
+    return out
+
+
+def summary_rows(grasps, protocols) -> list[tuple[str, str]]:
+    """The lines `ffcgs grasp --validate` prints: per protocol the share that passed, then how many passed them all
+    and whether the grasp offered first is one of them."""
+    tested = np.asarray(grasps["physics_tested"], bool)
+    res = {k: np.asarray(v)[tested] for k, v in grasps.arrays.items()
+           if k.endswith(("_success", "_reason", "_move", "_rot")) and np.ndim(v) and len(v) == len(tested)}
+    rows = physics_protocols.summary_rows(res, protocols) if tested.any() else []
+    passed = int(np.sum(grasps["physics_passed"]))
+    first = ranking.ranked(grasps.arrays)[0] if len(tested) else None
+    rows.append(("physics-checked", f"{passed} of {int(tested.sum())} tested grasps pass "
+                 f"{' and '.join(protocols)} ({float(grasps['physics_s']):.1f} s, physics backend "
+                 f"{grasps['physics_backend']}); the first grasp "
+                 f"{'passes' if first is not None and grasps['physics_passed'][first] else 'does not pass'}"))
+    return rows
