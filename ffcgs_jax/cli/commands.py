@@ -261,7 +261,13 @@ class GraspCmd:
         poses: optimise these wrist poses instead of sampling: .npy of shape (B, 4, 4), or .npz with
             `wrist_pose` (e.g. a previous grasps.npz), object frame.
         hand: built-in hand name or a hand-spec TOML.
+        validate: physics-check the valid grasps right after synthesis and rank those that pass every protocol
+            of `--protocol` first (`ffcgs_jax.validate`); every grasp is kept, with its results and what checked it
+            (physics_protocols, physics_backend, physics_config_json) in the grasp file.
+        protocol: the protocols `--validate` asks for: lift-shake, six-dir, both (the two), dexgraspbench or
+            dexgraspbench-bodex.
         grasp: synthesis settings (flags without prefix: --n, --sampler, --iters, --res, --d0, ...).
+        physics: physics settings for `--validate` (flags without prefix: --backend, --friction, ...).
     """
 
     object: tyro.conf.Positional[str | None] = None
