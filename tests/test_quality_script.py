@@ -70,6 +70,29 @@ def test_figures_of_a_fabricated_report(quality):
     assert "| b | cvae | 0/4 | 0 of 0 | 0/0 | no valid grasp |" in per
 
 
+def test_the_validated_first_grasp_is_the_first_that_passes_both(quality):
+    """Object c: the analytic first (grasp 1, lowest E) fails six-dir, grasp 3 passes both and dexgraspbench: the
+    validated ranking offers 3. Object a's first passes both already; b has no valid grasp: a failure either way."""
+    rep = _report()
+    rep["config"]["protocols"] = ["lift-shake", "six-dir", "dexgraspbench"]
+    rep["config"]["max_grasps_per_object"] = 0
+    a, b = rep["records"]
+    a["physics"]["dexgraspbench_success"] = [False, True]
+    c = _record("c", [False, True, True, True], [0.1, 0.2, 0.3, 0.4], [1, 2, 3, 0], [1, 2, 3],
+                {"lift_shake_success": [True, False, True], "six_dir_success": [False, True, True],
+                 "dexgraspbench_success": [True, False, True]}, [True] * 4)
+    rep["records"].append(c)
+    assert quality.validated_first(c) == (3, {"lift_shake": True, "six_dir": True, "dexgraspbench": True})
+    assert quality.validated_first(a)[0] == 2 and quality.validated_first(b) == (None, {})
+    row = next(ln for ln in quality.validated_table(rep).splitlines() if ln.startswith("| cvae |"))
+    cells = [x.strip() for x in row.strip("|").split("|")]
+    assert cells[1] == "3"
+    assert cells[2].startswith("1 / 3") and cells[3].startswith("2 / 3")  # both: analytic a; validated a and c
+    assert cells[4].startswith("1 / 3") and cells[5].startswith("1 / 3")  # dexgraspbench: analytic c; validated c
+    rep["config"]["protocols"] = ["six-dir"]
+    assert quality.validated_table(rep) == ""  # without both protocols there is no validated ranking to show
+
+
 def test_all_tips_touching_uses_the_tolerance(quality):
     dist = [[0.001, -0.0015, 0.0, 0.0, 0.0], [0.01] * 5, [0.0] * 5, [0.0, 0.0, 0.0, 0.0, -0.003]]
     (s,) = quality.summarise(_report(dist))
