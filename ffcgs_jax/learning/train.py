@@ -160,8 +160,11 @@ def train(cfg: TrainConfig, hand: str | None = None, progress: bool = True, unti
 
     `until_epoch` stops after that many epochs, checkpointed, as an interruption would (time-boxed sessions,
     tests); returns None then, and a later call with the same config continues."""
-    out = Path(cfg.out)
-    out.mkdir(parents=True, exist_ok=True)
+    if Path(cfg.out).expanduser().is_file():  # refused at once (check_folder below creates the folder)
+        files.check_folder(cfg.out, "--out")
+    if data is None:  # before anything is written: a wrong --data.path leaves no output folder behind
+        data = cvae_data.load(cfg.data.path, cfg.data.noisy)
+    out = files.check_folder(cfg.out, "--out")
     text = to_toml(cfg)
     cfg_path, ckpt_path, log_path = out / "config.toml", out / "checkpoint.npz", out / "metrics.jsonl"
     if ckpt_path.is_file() and cfg_path.is_file() and cfg_path.read_text() != text:
@@ -169,8 +172,6 @@ def train(cfg: TrainConfig, hand: str | None = None, progress: bool = True, unti
                          f"{cfg_path} or choose another --out")
     files.write_text(cfg_path, text)
 
-    if data is None:
-        data = cvae_data.load(cfg.data.path, cfg.data.noisy)
     if data.res != cfg.model.res:
         raise FfcgsError(f"the dataset's SDFs are {data.res}^3 but model.res is {cfg.model.res}")
     train_recs, val_recs = cvae_data.split(data, cfg.cv.folds, cfg.cv.fold, cfg.seed)
