@@ -19,6 +19,7 @@ from typing import Any, TypeVar
 from ffcgs_jax.errors import FfcgsError
 
 T = TypeVar("T")
+SEED_MAX = 2**63 - 1  # seeds are int64 (JAX's and NumPy's PRNG keys take them)
 
 
 def check_range(name: str, value: int | float, lo: int | float, hi: int | float) -> None:
@@ -62,12 +63,23 @@ def from_dict(cls: type[T], data: Any, where: str = "") -> T:
 
 
 def _coerce(hint: Any, value: Any, name: str) -> Any:
+    args = typing.get_args(hint)
+    if type(None) in args and len(args) == 2:  # `X | None`: None stays, anything else must be an X
+        return None if value is None else _coerce(next(a for a in args if a is not type(None)), value, name)
     if hint is float and isinstance(value, int) and not isinstance(value, bool):
         return float(value)
-    if hint in (int, float, str, bool) and not isinstance(value, hint):
+    if hint in (int, float, str, bool) and (
+            not isinstance(value, hint) or (isinstance(value, bool) and hint is not bool)):
         raise FfcgsError(f"config key {name} must be {hint.__name__}, got {value!r}")
     if typing.get_origin(hint) is tuple:
-        return tuple(value)
+        if not isinstance(value, (list, tuple)):
+            raise FfcgsError(f"config key {name} must be a list, got {value!r}")
+        if not args:
+            return tuple(value)
+        items = args[:1] * len(value) if args[1:] == (...,) else args
+        if len(items) != len(value):
+            raise FfcgsError(f"config key {name} must be a list of {len(items)} values, got {value!r}")
+        return tuple(_coerce(t, v, f"{name}[{i}]") for i, (t, v) in enumerate(zip(items, value)))
     return value
 
 
@@ -88,11 +100,11 @@ def load(cls: type[T], path: str | Path) -> T:
 
 def read_toml(path: str | Path) -> dict:
     """The tables of a TOML config file, or FfcgsError naming a missing or malformed file."""
-    path = Path(path)
-    if not path.is_file():
-        raise FfcgsError(f"config file not found: {path}")
+    from ffcgs_jax.inputs import read_text
+
+    text = read_text(path, "config file")
     try:
-        return tomllib.loads(path.read_text())
+        return tomllib.loads(text)
     except tomllib.TOMLDecodeError as e:
         raise FfcgsError(f"config file {path} is not valid TOML: {e}") from None
 

@@ -15,6 +15,7 @@ compiled. `atomic_write` / `atomic_path` write a temporary file in the same fold
 target is untouched.
 """
 
+import codecs
 import contextlib
 import json
 import os
@@ -276,17 +277,23 @@ def duplicate_stems(paths) -> list[str]:
 
 
 def _kind(head: bytes) -> str:
+    """What a file whose first bytes are `head` is, in words ("a PNG image"), for messages about a file of the
+    wrong kind."""
     if not head:
         return "an empty file"
-    if head.startswith(b"\x89MCAP"):
-        return "an MCAP file"
-    if head.startswith(b"\x89PNG"):
-        return "a PNG image"
-    try:
-        head.decode("utf-8")
-        return "a text file"
+    for magic, kind in _MAGIC:
+        if head.startswith(magic):
+            return kind
+    try:  # incremental: the head may end inside a multi-byte character
+        codecs.getincrementaldecoder("utf-8")().decode(head, final=False)
+        return "a text file" if b"\0" not in head else "a file of another format"
     except UnicodeDecodeError:
         return "a file of another format"
+
+
+_MAGIC = ((b"\x89MCAP", "an MCAP file"), (b"\x89PNG", "a PNG image"), (_ZIP, "a zip archive (.npz)"),
+          (_NPY, "a NumPy .npy array"), (b"ply", "a PLY mesh"), (b"glTF", "a binary glTF (.glb)"),
+          (b"\xff\xd8\xff", "a JPEG image"), (b"%PDF", "a PDF document"))
 
 
 def read_npz(path: str | Path, what: str = "file", label: str = ".npz", npy: bool = False) -> dict[str, np.ndarray]:
@@ -295,7 +302,7 @@ def read_npz(path: str | Path, what: str = "file", label: str = ".npz", npy: boo
     missing file ("grasp file not found: ..."), `label` the format ("... is not a readable grasp .npz: ...")."""
     path = Path(path)
     if path.is_dir():
-        raise FfcgsError(f"{what} {path} is a folder")
+        raise FfcgsError(f"{what} {path} is a folder, not a file")
     if not path.is_file():
         raise FfcgsError(f"{what} not found: {path}")
     with open(path, "rb") as f:

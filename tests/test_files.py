@@ -79,7 +79,7 @@ def test_read_npz_refuses_pickles_and_broken_zips_and_reads_npy(tmp_path):
         files.read_npz(tmp_path / "cut.npz")
     np.save(tmp_path / "poses.npy", np.eye(4)[None])
     assert files.read_npz(tmp_path / "poses.npy", npy=True)[""].shape == (1, 4, 4)
-    with pytest.raises(FfcgsError, match="is not a readable .npz: it is a file of another format"):
+    with pytest.raises(FfcgsError, match="is not a readable .npz: it is a NumPy .npy array"):
         files.read_npz(tmp_path / "poses.npy")
     with pytest.raises(FfcgsError, match="pose file not found"):
         files.read_npz(tmp_path / "none.npy", "pose file", npy=True)

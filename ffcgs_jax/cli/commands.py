@@ -18,7 +18,7 @@ from ffcgs_jax import files
 from ffcgs_jax.cli.dataset_commands import (DatasetExportCmd, DatasetInfoCmd, run_dataset_build, run_dataset_export,
                                              run_dataset_info)
 from ffcgs_jax.cli.depth_commands import FuseCmd, RenderDepthCmd, run_fuse, run_render_depth
-from ffcgs_jax.cli.grasp_object import recorded_object
+from ffcgs_jax.cli.grasp_object import not_the_recorded_object, recorded_object
 from ffcgs_jax.cli.show_command import ShowCmd, run_show
 from ffcgs_jax.dataset.config import DatasetConfig
 from ffcgs_jax.errors import FfcgsError
@@ -468,18 +468,18 @@ def run_eval(cmd: EvalCmd) -> None:
                          f"{len(data['q'])} grasps), got {cmd.video_index}")
     name, scale = recorded_object(cmd, data, objects.names())
     spec = hand_spec.load_spec(cmd.hand)
+    grasp_io.check_hand(data, cmd.grasps, spec)
     mesh = mesh_io.load_mesh(name, scale=scale)
     simulated = mesh_io.identity(name, scale, mesh)
     recorded = str(data.get("object_sha256", ""))
     if recorded and recorded != str(simulated["object_sha256"]) and not cmd.other_object:
-        raise FfcgsError(f"{name} (scale {scale:g}) is not the object these grasps were made for "
-                         f"({data['object_source']}, scale {float(data['object_scale']):g}); pass --other-object "
-                         "to simulate it anyway")
+        raise FfcgsError(not_the_recorded_object(name, scale, simulated, data))
     protocols = _protocols(cmd.protocol)
     valid = np.asarray(data["valid"], bool) if "valid" in data else np.ones(len(data["q"]), bool)
     idx = np.arange(len(valid)) if cmd.all else np.flatnonzero(valid)
     if len(idx) == 0:
-        raise FfcgsError(f"{cmd.grasps} has no valid grasps to test (use --all to test them anyway)")
+        raise FfcgsError(f"{cmd.grasps} has no grasps" if cmd.all else
+                         f"{cmd.grasps} has no valid grasps to test (use --all to test them anyway)")
     # files from before squeeze_dir was recorded: the physics test derives it from the fingertips near the mesh
     squeeze = data.get("squeeze_dir")
     data = _physics_check(spec, mesh, data, np.isin(np.arange(len(valid)), idx), cmd.physics, protocols)
@@ -509,14 +509,9 @@ def run_eval(cmd: EvalCmd) -> None:
 
 
 def _read_poses(path: str) -> np.ndarray:
-    p = Path(path)
-    arrays = files.read_npz(p, "pose file", ".npy/.npz pose file", npy=True)
-    if "" not in arrays and "wrist_pose" not in arrays:
-        raise FfcgsError(f"pose file {p} has no 'wrist_pose' array (has {', '.join(arrays) or 'none'})")
-    data = arrays.get("", arrays.get("wrist_pose"))
-    from ffcgs_jax.hand.kinematics import check_wrist_poses
+    from ffcgs_jax.synthesis import grasp_io
 
-    return check_wrist_poses(data, f"wrist poses in {p}").reshape(-1, 4, 4)
+    return grasp_io.load_poses(path)
 
 
 def _weights(g: GraspConfig) -> Input:

@@ -52,13 +52,14 @@ class RenderDepthCmd:
     overwrite: bool = False
 
     def check(self) -> None:
-        from ffcgs_jax.config import check_integer, check_range
+        from ffcgs_jax.config import SEED_MAX, check_integer, check_range
 
         check_integer("--views", self.views, 1, 360)
         check_integer("--width", self.width, 8, 4096)
         check_integer("--height", self.height, 8, 4096)
         check_range("--elevation", self.elevation, 1.0, 89.0)
         check_range("--distance", self.distance, 0.05, 10.0)
+        check_integer("--seed", self.seed, 0, SEED_MAX)
 
 
 def run_render_depth(cmd: RenderDepthCmd) -> None:

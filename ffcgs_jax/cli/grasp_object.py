@@ -16,3 +16,15 @@ def recorded_object(cmd, data: dict, builtins: list[str]) -> tuple[str, float]:
     if stored not in builtins:
         raise FfcgsError(f"{cmd.grasps} does not name a built-in object ({stored!r}): pass --object")
     return stored, scale
+
+
+def not_the_recorded_object(name: str, scale: float, simulated: dict, data: dict) -> str:
+    """The message for a mesh whose content hash (`simulated`, `mesh_io.identity`) is not the one grasp file `data`
+    records: the same file (source and scale) whose content changed, or another object."""
+    source = str(data.get("object_source", data.get("object_name", "?")))
+    stored_scale = float(data["object_scale"]) if "object_scale" in data else 1.0
+    same = source == str(simulated["object_source"]) and stored_scale == scale
+    what = "its content changed since" if same else "the content differs"
+    return (f"{name} (scale {scale:g}) is not the object these grasps were made for ({source}, scale "
+            f"{stored_scale:g}): {what} (content hash {str(simulated['object_sha256'])[:12]}, the grasp file "
+            f"records {str(data['object_sha256'])[:12]}); pass --other-object to simulate it anyway")

@@ -72,6 +72,7 @@ def run_show(cmd: ShowCmd) -> None:
 
     data = grasp_io.load_npz(cmd.grasps)
     name, scale = recorded_object(cmd, data, objects.names())
-    view = viewer.show(data, K.load_hand(hand_of(data, cmd.hand)), mesh_io.load_mesh(name, scale=scale),
-                       host=cmd.host, port=cmd.port)
+    hand = K.load_hand(hand_of(data, cmd.hand))
+    grasp_io.check_hand(data, cmd.grasps, hand.spec)
+    view = viewer.show(data, hand, mesh_io.load_mesh(name, scale=scale), host=cmd.host, port=cmd.port)
     serve(view, cmd.seconds)

@@ -89,6 +89,8 @@ def sources(cfg: DatasetConfig) -> list[Source]:
     if not cfg.objects:
         raise FfcgsError("--objects is required: a directory of meshes (e.g. shared/objects/ycb)")
     directory = Path(cfg.objects)
+    if directory.is_file():
+        raise FfcgsError(f"objects directory {directory} is a file, not a folder")
     if not directory.is_dir():
         raise FfcgsError(f"objects directory not found: {directory}")
     files = sorted(p for p in directory.iterdir() if p.is_file() and p.suffix.lower() in MESH_SUFFIXES)

@@ -2,7 +2,7 @@
 
 import dataclasses
 
-from ffcgs_jax.config import check_integer, is_finite
+from ffcgs_jax.config import SEED_MAX, check_integer, is_finite
 from ffcgs_jax.errors import FfcgsError
 from ffcgs_jax.physics.config import PhysicsConfig
 from ffcgs_jax.synthesis.config import GraspConfig
@@ -137,7 +137,7 @@ class DatasetConfig:
         if self.physics_test not in ("both", "none"):
             raise FfcgsError(f"physics_test must be 'both' or 'none', got {self.physics_test!r}")
         for name, lo, hi in (("per_object", 1, 1_000_000), ("rotations", 1, 1000), ("procedural", 0, 100_000),
-                             ("physics_chunk", 1, 1_000_000), ("seed", 0, 2**63 - 1)):
+                             ("physics_chunk", 1, 1_000_000), ("seed", 0, SEED_MAX)):
             check_integer(name.replace("_", "-"), getattr(self, name), lo, hi)
         for name in ("noise_trans", "noise_rot", "dedupe_trans", "dedupe_rot"):
             v = getattr(self, name)

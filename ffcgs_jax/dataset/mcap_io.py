@@ -47,6 +47,7 @@ from ffcgs_jax.dataset.schema import (
     record_from,
 )
 from ffcgs_jax.errors import FfcgsError
+from ffcgs_jax.inputs import check_file
 
 _MCAP_MAGIC = b"\x89MCAP0\r\n"
 
@@ -80,11 +81,11 @@ def _iter_messages(path: Path) -> Iterator[tuple[str, Payload]]:
     """(topic, payload) in file order, streaming; checks the file, schemas and encodings."""
     from mcap.reader import NonSeekingReader
 
-    if not path.is_file():
-        raise FfcgsError(f"dataset file not found: {path}")
+    check_file(path, "dataset file")
     with open(path, "rb") as f:
-        if f.read(8) != _MCAP_MAGIC:
-            raise FfcgsError(f"{path} is not an MCAP file (bad magic)")
+        head = f.read(8)
+        if head != _MCAP_MAGIC:
+            raise FfcgsError(f"{path} is not an MCAP file (bad magic): it is {files._kind(head)}")
         f.seek(0)
         it = NonSeekingReader(f).iter_messages(log_time_order=False)
         while True:
@@ -92,8 +93,9 @@ def _iter_messages(path: Path) -> Iterator[tuple[str, Payload]]:
                 item = next(it)
             except StopIteration:
                 return
-            except Exception as e:  # noqa: BLE001 - any parse failure means a broken or truncated file
-                raise FfcgsError(f"{path} is not a readable MCAP file: {type(e).__name__}: {e}") from None
+            except Exception:  # noqa: BLE001 - any parse failure means a broken or truncated file
+                raise FfcgsError(f"{path} is not a readable MCAP file: it is truncated or corrupt (a record before "
+                                 f"byte {f.tell()} cannot be read)") from None
             schema, channel, message = item
             topic = channel.topic
             if topic not in SCHEMAS:
@@ -366,8 +368,7 @@ def batches(path: str | Path, batch_size: int, seed: int, shuffle_buffer: int = 
     for name, v, lo in (("batch_size", batch_size, 1), ("shuffle_buffer", shuffle_buffer, 0), ("epochs", epochs, 0)):
         if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < lo:
             raise FfcgsError(f"{name} must be an integer >= {lo}, got {v!r}")
-    if not path.is_file():
-        raise FfcgsError(f"dataset file not found: {path}")
+    check_file(path, "dataset file")
     for epoch in range(epochs):
         rng = np.random.default_rng([int(seed), epoch])
 

@@ -17,6 +17,7 @@ import numpy as np
 
 from ffcgs_jax.dataset import mcap_io as dataset_io
 from ffcgs_jax.errors import FfcgsError
+from ffcgs_jax.inputs import check_file
 
 
 def _icosahedron_face_centres() -> np.ndarray:
@@ -47,8 +48,7 @@ def _palm_normal(config: dict) -> np.ndarray:
 def stats(path: str | Path) -> dict:
     """Everything `ffcgs dataset info` prints, as a JSON-ready dict."""
     path = Path(path)
-    if not path.is_file():
-        raise FfcgsError(f"dataset file not found: {path}")
+    check_file(path, "dataset file")
     config = dataset_io.read_config(path)
     normal = _palm_normal(config)
     per_object: dict[str, dict] = {}

@@ -28,6 +28,7 @@ from PIL import Image
 
 from ffcgs_jax import files
 from ffcgs_jax.errors import FfcgsError
+from ffcgs_jax.inputs import read_text
 from ffcgs_jax.types import Bool, Float
 
 CAMERA_KEYS = ("fx", "fy", "cx", "cy", "width", "height", "depth_scale")
@@ -161,11 +162,12 @@ def _read_png(path: pathlib.Path, kind: str, sixteen: bool) -> np.ndarray:
 
 
 def _read_json(path: pathlib.Path) -> dict:
-    if not path.is_file():
+    if not path.exists():
         raise FfcgsError(f"depth folder {path.parent} has no {path.name}")
+    text = read_text(path, "file")
     try:
-        data = json.loads(path.read_text())
-    except (ValueError, UnicodeDecodeError) as e:
+        data = json.loads(text)
+    except ValueError as e:
         raise FfcgsError(f"{path} is not valid JSON: {e}") from None
     if not isinstance(data, dict):
         raise FfcgsError(f"{path} must hold a JSON object, got {type(data).__name__}")
@@ -234,6 +236,9 @@ def _read_depth(path: pathlib.Path, cam: dict[str, float]) -> np.ndarray:
 
 
 def _read_folder(folder: pathlib.Path) -> Frames:
+    if not any(folder.iterdir()):
+        raise FfcgsError(f"depth folder {folder} is empty: it holds no depth frames (camera.json, poses.json and "
+                         "depth images)")
     cam = _read_camera(folder / "camera.json")
     images = _depth_files(folder)
     poses_path = folder / "poses.json"

@@ -10,8 +10,10 @@ import warnings
 import numpy as np
 import trimesh
 
+from ffcgs_jax import files
 from ffcgs_jax.errors import FfcgsError
 from ffcgs_jax.geometry import objects
+from ffcgs_jax.inputs import check_file
 
 FORMATS = ("obj", "stl", "ply", "off", "glb", "gltf")  # mesh formats trimesh reads that we accept
 MM_EXTENT = 2.0  # metres: a larger object is most likely in millimetres
@@ -92,12 +94,57 @@ def _resolve(source: str | pathlib.Path) -> pathlib.Path:
     if isinstance(source, str) and source in objects.names():
         return objects.path(source)
     path = pathlib.Path(source)
-    if not path.is_file():
+    if not path.exists():
         hint = "" if path.suffix else f" (built-in objects: {', '.join(objects.names())})"
         raise FfcgsError(f"mesh file not found: {path}{hint}")
+    check_file(path, "mesh file")
     if path.suffix.lower().lstrip(".") not in FORMATS:
         raise FfcgsError(f"mesh file {path} has unsupported format {path.suffix!r}; use one of {', '.join(FORMATS)}")
+    _check_content(path)
     return path
+
+
+_FORMAT_NAMES = {"obj": "a Wavefront OBJ", "stl": "an STL", "ply": "a PLY mesh"}
+_MESH_CONTENT = ("a binary STL", "an ASCII STL", "a PLY mesh", "a binary glTF (.glb)", "an OFF mesh",
+                 "a Wavefront OBJ")
+
+
+def _content(path: pathlib.Path) -> str:
+    """What the file's first bytes say it is: a mesh format's words ("a binary STL") or `files._kind`'s."""
+    size = path.stat().st_size
+    with open(path, "rb") as f:
+        head = f.read(1024)
+    if size >= 84 and size == 84 + 50 * int.from_bytes(head[80:84], "little"):
+        return "a binary STL"
+    kind = files._kind(head)
+    if kind != "a text file":
+        return kind
+    words = head.lstrip().split(maxsplit=1)
+    first = words[0].lower() if words else b""
+    if first == b"solid":
+        return "an ASCII STL"
+    if first in (b"off", b"coff", b"noff"):
+        return "an OFF mesh"
+    if any(line.split()[:1] in ([b"v"], [b"f"], [b"vn"], [b"vt"]) for line in head.splitlines()):
+        return "a Wavefront OBJ"
+    return kind
+
+
+def _check_content(path: pathlib.Path) -> None:
+    """Refuse an obj, stl or ply file whose content is of another kind (a binary STL saved as .obj), naming both:
+    the format readers would otherwise fail on it with their own, less helpful, words."""
+    ext = path.suffix.lower().lstrip(".")
+    content = _content(path)
+    ok = {"obj": ("a Wavefront OBJ", "a text file"), "stl": ("a binary STL", "an ASCII STL"),
+          "ply": ("a PLY mesh",)}.get(ext)
+    if content == "an empty file":
+        raise FfcgsError(f"mesh file {path} is empty (0 bytes)")
+    if ok is not None and content not in ok:
+        looks = "it looks like" if content in _MESH_CONTENT else "it is"
+        if ext == "stl" and content == "a file of another format":
+            looks, content = "it is", "binary, but its size does not fit the triangle count of a binary STL's " \
+                                      "header (a truncated STL or a file of another format)"
+        raise FfcgsError(f"{path} is not {_FORMAT_NAMES[ext]}: {looks} {content}")
 
 
 def _read(path: pathlib.Path) -> trimesh.Trimesh:

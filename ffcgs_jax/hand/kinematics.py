@@ -248,9 +248,11 @@ def orthonormalize(poses: np.ndarray) -> np.ndarray:
 def check_wrist_poses(poses, name: str = "wrist_pose", atol: float = 2e-3) -> np.ndarray:
     """Host-side validation of (4, 4) or (B, 4, 4) rigid transforms; returns them `orthonormalize`d (float64).
     atol admits float32 rounding drift, not a wrong matrix."""
-    a = np.asarray(poses, dtype=float)
+    a = _real(poses, name)
     if a.ndim not in (2, 3) or a.shape[-2:] != (4, 4):
         raise FfcgsError(f"{name} must have shape (4, 4) or (B, 4, 4), got {a.shape}")
+    if a.size == 0:
+        raise FfcgsError(f"{name} holds no poses (shape {a.shape})")
     if not np.isfinite(a).all():
         raise FfcgsError(f"{name} contains NaN or inf")
     R = a[..., :3, :3]
@@ -262,9 +264,17 @@ def check_wrist_poses(poses, name: str = "wrist_pose", atol: float = 2e-3) -> np
     return orthonormalize(a)
 
 
+def _real(values, name: str) -> np.ndarray:
+    """`values` as a float64 array, or FfcgsError when they are not real numbers (strings, complex, objects)."""
+    a = np.asarray(values)
+    if a.dtype.kind not in "biuf":
+        raise FfcgsError(f"{name} must hold real numbers, got dtype {a.dtype}")
+    return a.astype(np.float64)
+
+
 def check_q(hand: Hand, q, name: str = "q") -> np.ndarray:
     """Host-side validation of channel vectors (Q,) or (B, Q)."""
-    a = np.asarray(q, dtype=float)
+    a = _real(q, name)
     if a.ndim not in (1, 2) or a.shape[-1] != hand.n_channels:
         raise FfcgsError(f"{name} must have shape ({hand.n_channels},) or (B, {hand.n_channels}) for hand "
                          f"{hand.spec.name} (channels: {', '.join(hand.spec.channel_names)}), got {a.shape}")

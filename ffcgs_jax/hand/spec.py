@@ -34,6 +34,7 @@ import mujoco
 import numpy as np
 
 from ffcgs_jax.errors import FfcgsError
+from ffcgs_jax.inputs import read_text
 
 _TOP_KEYS = {"name", "mjcf", "root_body", "contact_sites", "palm_site", "palm_normal", "tetrahedron_sites",
              "channels", "coupling"}
@@ -79,21 +80,22 @@ def load_spec(source: str | Path = "svh") -> HandSpec:
     path = Path(source)
     if path.suffix != ".toml":
         path = builtin_spec_path(str(source))
-    if not path.is_file():
-        raise FfcgsError(f"hand spec not found: {path}")
+    text = read_text(path, "hand spec")
     try:
-        raw = tomllib.loads(path.read_text())
+        raw = tomllib.loads(text)
     except tomllib.TOMLDecodeError as e:
         raise FfcgsError(f"hand spec {path} is not valid TOML: {e}") from None
     where = f"hand spec {path}"
     _keys(raw, _TOP_KEYS, where, required=_TOP_KEYS)
     _keys(raw["channels"], _CHANNEL_KEYS, f"{where} [channels]", required=_CHANNEL_KEYS)
     _keys(raw["coupling"], _COUPLING_KEYS, f"{where} [coupling]", required=_COUPLING_KEYS)
-    mjcf = (path.parent / raw["mjcf"]).resolve()
-    if not mjcf.is_file():
-        raise FfcgsError(f"{where}: mjcf file not found: {mjcf}")
+    mjcf = (path.parent / _string(raw["mjcf"], f"{where} mjcf")).resolve()
+    try:
+        read_text(mjcf, "mjcf file")  # MuJoCo's own words for a folder or a binary file are obscure
+    except FfcgsError as e:
+        raise FfcgsError(f"{where}: {e}") from None
     ch = raw["channels"]
-    names = tuple(ch["names"])
+    names = _strings(ch["names"], f"{where} [channels] names")
     lower = _floats(ch["lower"], f"{where} [channels] lower")
     upper = _floats(ch["upper"], f"{where} [channels] upper")
     if not (len(names) == len(lower) == len(upper)) or not names:
@@ -102,22 +104,24 @@ def load_spec(source: str | Path = "svh") -> HandSpec:
     bad = [n for n, lo, hi in zip(names, lower, upper) if not lo < hi]
     if bad:
         raise FfcgsError(f"{where}: channel(s) {bad} need lower < upper")
-    joints = tuple(raw["coupling"]["joints"])
+    joints = _strings(raw["coupling"]["joints"], f"{where} [coupling] joints")
     matrix = raw["coupling"]["matrix"]
     shape = (len(joints), len(names))
-    if len(matrix) != shape[0] or any(not isinstance(r, list) or len(r) != shape[1] for r in matrix):
+    if not isinstance(matrix, list) or len(matrix) != shape[0] or any(not isinstance(r, list) or len(r) != shape[1] for r in matrix):
         got = (len(matrix), sorted({len(r) if isinstance(r, list) else -1 for r in matrix}))
         raise FfcgsError(f"{where}: [coupling] matrix must be {shape[0]}x{shape[1]} (joints x channels), "
                          f"got {got[0]} rows of lengths {got[1]}")
     normal = _floats(raw["palm_normal"], f"{where} palm_normal")
     if len(normal) != 3 or not np.linalg.norm(normal) > 0:
         raise FfcgsError(f"{where}: palm_normal must be a non-zero 3-vector, got {list(normal)}")
-    tet = tuple(raw["tetrahedron_sites"])
+    tet = _strings(raw["tetrahedron_sites"], f"{where} tetrahedron_sites")
     if len(tet) != 4:
         raise FfcgsError(f"{where}: tetrahedron_sites must name exactly 4 sites, got {len(tet)}")
     spec = HandSpec(
-        name=str(raw["name"]), mjcf_path=str(mjcf), root_body=str(raw["root_body"]),
-        contact_sites=tuple(raw["contact_sites"]), palm_site=str(raw["palm_site"]),
+        name=_string(raw["name"], f"{where} name"), mjcf_path=str(mjcf),
+        root_body=_string(raw["root_body"], f"{where} root_body"),
+        contact_sites=_strings(raw["contact_sites"], f"{where} contact_sites"),
+        palm_site=_string(raw["palm_site"], f"{where} palm_site"),
         palm_normal=tuple(float(v) / float(np.linalg.norm(normal)) for v in normal),
         tetrahedron_sites=tet, channel_names=names, lower=lower, upper=upper, coupling_joints=joints,
         coupling=tuple(_floats(r, f"{where} [coupling] matrix") for r in matrix),
@@ -206,10 +210,24 @@ def _keys(table: dict, valid: set[str], where: str, required: set[str]) -> None:
         raise FfcgsError(f"{where}: missing key(s) {missing}")
 
 
+def _string(value, where: str) -> str:
+    if not isinstance(value, str):
+        raise FfcgsError(f"{where} must be a string, got {value!r}")
+    return value
+
+
+def _strings(values, where: str) -> tuple[str, ...]:
+    if not isinstance(values, list) or not all(isinstance(v, str) for v in values):
+        raise FfcgsError(f"{where} must be a list of strings, got {values!r}")
+    return tuple(values)
+
+
 def _floats(values, where: str) -> tuple[float, ...]:
+    if not isinstance(values, list) or any(isinstance(v, bool) or not isinstance(v, (int, float)) for v in values):
+        raise FfcgsError(f"{where} must be a list of numbers, got {values!r}")
     try:
         out = tuple(float(v) for v in values)
-    except (TypeError, ValueError):
+    except (TypeError, ValueError, OverflowError):
         raise FfcgsError(f"{where} must be a list of numbers, got {values!r}") from None
     if not all(np.isfinite(out)):
         raise FfcgsError(f"{where} must be finite, got {list(out)}")

@@ -36,6 +36,10 @@ def unflatten(flat: dict[str, np.ndarray]) -> dict:
         node = tree
         for p in path:
             node = node.setdefault(p, {})
+            if not isinstance(node, dict):
+                raise FfcgsError(f"checkpoint entry {key!r} lies under the array {p!r}")
+        if isinstance(node.get(leaf), dict):
+            raise FfcgsError(f"checkpoint entry {key!r} is both an array and a group")
         node[leaf] = v
     return tree
 
@@ -53,5 +57,16 @@ def load(path: str | Path) -> tuple[dict, dict]:
     flat = files.read_npz(path, "checkpoint file", ".npz checkpoint")
     if _META not in flat:
         raise FfcgsError(f"{path} is not an ffcgs checkpoint (no {_META} entry)")
-    meta = json.loads(flat.pop(_META).tobytes().decode())
-    return unflatten(flat), meta
+    raw = flat.pop(_META)
+    try:
+        meta = json.loads(raw.tobytes().decode()) if raw.dtype == np.uint8 else None
+    except ValueError:  # JSONDecodeError and UnicodeDecodeError included
+        meta = None
+    if meta is None:
+        raise FfcgsError(f"{path} is not an ffcgs checkpoint: its {_META} entry is not JSON text (uint8)")
+    if not isinstance(meta, dict):
+        raise FfcgsError(f"{path} is not an ffcgs checkpoint: its {_META} entry is not a JSON object")
+    try:
+        return unflatten(flat), meta
+    except FfcgsError as e:
+        raise FfcgsError(f"{path} is not an ffcgs checkpoint: {e}") from None

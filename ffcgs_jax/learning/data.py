@@ -13,6 +13,7 @@ import numpy as np
 
 from ffcgs_jax.dataset import mcap_io as dataset_io
 from ffcgs_jax.errors import FfcgsError
+from ffcgs_jax.inputs import check_file
 
 
 class TrainData(NamedTuple):
@@ -45,8 +46,9 @@ class TrainData(NamedTuple):
 def load(path: str | Path, noisy: bool = True) -> TrainData:
     """Read a dataset file; records without grasps are dropped. `noisy` adds each grasp's noisy copy."""
     path = Path(path)
-    if not path.is_file():
+    if not path.exists():
         raise FfcgsError(f"dataset file not found: {path} (build one with `ffcgs dataset build`)")
+    check_file(path, "dataset file")
     grids, origins, voxels, names, poses, recs, flags = [], [], [], [], [], [], []
     for rec in dataset_io.iter_records(path):
         if rec.num_grasps == 0:

@@ -155,8 +155,8 @@ def _check_run_folder(out: Path, cfg_path: Path, ckpt_path: Path, text: str) -> 
     """`out` may be new, empty, or this configuration's run (resumed); a file, another configuration's run, or a
     folder of other files is refused before anything is written."""
     if out.exists() and not out.is_dir():
-        raise FfcgsError(f"--out {out} is a file; a training run writes a folder (config.toml, checkpoint.npz, "
-                         "weights.npz, ...)")
+        raise FfcgsError(f"--out {out} is a file, not a folder: a training run writes a folder (config.toml, "
+                         "checkpoint.npz, weights.npz, ...)")
     if ckpt_path.is_file() and cfg_path.is_file() and cfg_path.read_text() != text:
         raise FfcgsError(f"{out} holds a run with a different config ({cfg_path}); resume it with --config "
                          f"{cfg_path} or choose another --out")
@@ -174,7 +174,7 @@ def train(cfg: TrainConfig, hand: str | None = None, progress: bool = True, unti
 
     `until_epoch` stops after that many epochs, checkpointed, as an interruption would (time-boxed sessions,
     tests); returns None then, and a later call with the same config continues."""
-    out = Path(cfg.out)
+    out = Path(cfg.out).expanduser()
     text = to_toml(cfg)
     cfg_path, ckpt_path, log_path = out / "config.toml", out / "checkpoint.npz", out / "metrics.jsonl"
     _check_run_folder(out, cfg_path, ckpt_path, text)

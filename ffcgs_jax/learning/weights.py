@@ -9,7 +9,7 @@ import jax.numpy as jnp
 
 from ffcgs_jax.config import from_dict
 from ffcgs_jax.errors import FfcgsError
-from ffcgs_jax.learning import checkpoint
+from ffcgs_jax.learning import checkpoint, cvae
 from ffcgs_jax.learning.config import ModelConfig
 
 WEIGHTS_FORMAT = "ffcgs.cvae.v1"
@@ -27,4 +27,15 @@ def load_weights(path: str | Path, hand: str | None = None) -> tuple[dict, Model
         raise FfcgsError(f"{path} is not a CVAE weights file (format {meta.get('format')!r}, want {WEIGHTS_FORMAT})")
     if hand is not None and meta.get("hand") != hand:
         raise FfcgsError(f"{path} was trained for hand {meta.get('hand')!r}, not {hand!r}")
-    return jax.tree.map(jnp.asarray, tree["params"]), from_dict(ModelConfig, meta["model"])
+    if "model" not in meta:
+        raise FfcgsError(f"{path} is not a CVAE weights file: its metadata has no model config")
+    try:
+        model = from_dict(ModelConfig, meta["model"])
+    except FfcgsError as e:
+        raise FfcgsError(f"{path}: model config: {e}") from None
+    layout = lambda tree: jax.tree.map(lambda a: (a.shape, a.dtype.kind), tree)  # noqa: E731
+    got, want = tree["params"], jax.eval_shape(lambda k: cvae.init(k, model), jax.random.key(0))
+    if not isinstance(got, dict) or layout(got) != layout(want):
+        raise FfcgsError(f"{path}: its parameters do not fit its model config (array names, shapes or dtypes differ "
+                         "from what learning.cvae.init makes for it)")
+    return jax.tree.map(jnp.asarray, got), model

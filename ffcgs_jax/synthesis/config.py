@@ -5,7 +5,7 @@ pipeline's `GraspConfig`, which nests them with the SDF's.
 import dataclasses
 import math
 
-from ffcgs_jax.config import check_integer, check_range
+from ffcgs_jax.config import SEED_MAX, check_integer, check_range
 from ffcgs_jax.errors import FfcgsError
 from ffcgs_jax.geometry.config import SDFConfig
 
@@ -255,3 +255,4 @@ class GraspConfig:
         check_range("contact_tol", self.contact_tol, 0.0, 1.0)
         check_range("squeeze_angle", self.squeeze_angle, 0.0, 3.0)
         check_integer("devices", self.devices, 0, 4096)
+        check_integer("seed", self.seed, 0, SEED_MAX)

@@ -28,6 +28,7 @@ from ffcgs_jax.geometry import sdf as S
 from ffcgs_jax.geometry.sdf import GradientSDF
 from ffcgs_jax.hand.kinematics import Hand
 from ffcgs_jax.hand.sites import default_standoff, palm_centre_root
+from ffcgs_jax.inputs import check_file
 from ffcgs_jax.learning import cvae
 from ffcgs_jax.learning.weights import load_weights, shipped_weights
 from ffcgs_jax.synthesis import filters as F
@@ -368,9 +369,7 @@ def sampler_params(name: str, hand: Hand, cfg: SamplerConfig, dtype=None) -> tup
     casting ~50 leaves per call cost a millisecond of dispatch); (None, None) otherwise."""
     if name != "cvae":
         return None, None
-    path = weights_path(hand, cfg.weights)
-    if not path.is_file():
-        raise FfcgsError(f"cvae weights file not found: {path}")
+    path = check_file(weights_path(hand, cfg.weights), "cvae weights file")
     params, model = _load_cast(str(path), path.stat().st_mtime, hand.spec.name, None if dtype is None else
                                np.dtype(dtype).name)
     return params, model.res

@@ -62,7 +62,59 @@ def make_inputs(tmp_path: Path) -> Path:
     tiny = mesh_io.load_mesh("ball")
     tiny.apply_scale(0.001)
     tiny.export(tmp_path / "tiny.stl")
+    _more_inputs(tmp_path)
     return tmp_path
+
+
+def _more_inputs(tmp_path: Path) -> None:
+    """Issue 36's careless inputs: folders for files, files of another kind, wrong types and shapes in files."""
+    for name in ("dir.obj", "dir.npz", "dir.toml", "dir.npy", "emptyframes"):
+        (tmp_path / name).mkdir()
+    np.save(tmp_path / "p_empty.npy", np.zeros((0, 4, 4)))
+    np.save(tmp_path / "p_str.npy", np.array(["a", "b"]))
+    np.save(tmp_path / "p_complex.npy", np.tile(np.eye(4), (2, 1, 1)).astype(complex))
+    good = dict(np.load(tmp_path / "good.npz"))
+    for name, change in [("g_rows", {"q": np.zeros((3, 9))}), ("g_33", {"wrist_pose": np.tile(np.eye(3), (2, 1, 1))}),
+                         ("g_nan", {"wrist_pose": np.full((2, 4, 4), np.nan)}), ("g_q16", {"q": np.zeros((2, 16))}),
+                         ("g_q0d", {"q": np.array(1.0)}), ("g_scale", {"object_scale": np.array("abc")}),
+                         ("g_strq", {"q": np.full((2, 9), "a")}), ("g_sha", {"object_sha256": np.array(["a", "b"])}),
+                         ("g_channels", {"channel_names": np.array(1.0)}),
+                         ("g_scaled", {"wrist_pose": np.tile(np.diag([2.0, 2, 2, 1]), (2, 1, 1))}),
+                         ("g_none", {"wrist_pose": np.zeros((0, 4, 4)), "q": np.zeros((0, 9)), "valid": np.zeros(0, bool)})]:
+        np.savez(tmp_path / f"{name}.npz", **{**good, **change})
+    (tmp_path / "random.toml").write_bytes(bytes(range(128, 256)) * 2)
+    (tmp_path / "png.toml").write_bytes(b"\x89PNG\r\n\x1a\n" + bytes(64))
+    (tmp_path / "latin1.toml").write_bytes("# caf\xe9\n[grasp]\nn = 3\n".encode("latin-1"))
+    (tmp_path / "bool_iters.toml").write_text("[grasp.optim]\niters = true\n")
+    (tmp_path / "bounds.toml").write_text("bounds = 'x'\n")
+    (tmp_path / "hand_mjcf.toml").write_text("name = 'x'\nmjcf = 3\nroot_body = 'a'\ncontact_sites = []\n"
+                                              "palm_site = 'a'\npalm_normal = [0, 0, 1]\ntetrahedron_sites = []\n"
+                                              "[channels]\nnames = []\nlower = []\nupper = []\n"
+                                              "[coupling]\njoints = []\nmatrix = []\n")
+    (tmp_path / "random_hand.toml").write_bytes(bytes(range(128, 256)))
+    box = tmp_path / "box.stl"
+    mesh_io.load_mesh("box").export(box)
+    (tmp_path / "stl.obj").write_bytes(box.read_bytes())
+    (tmp_path / "obj.stl").write_text("v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n")
+    (tmp_path / "random.ply").write_bytes(bytes(range(256)))
+    _grasps_on_file(tmp_path, box)
+    (tmp_path / "fr_json").mkdir()
+    (tmp_path / "fr_json" / "camera.json").write_bytes(b"\x89PNG\r\n\x1a\n")
+    (tmp_path / "magic.mcap").write_bytes(b"\x89MCAP0\r\n" + bytes(range(256)))
+    meta = lambda m: np.frombuffer(m, np.uint8)  # noqa: E731
+    np.savez(tmp_path / "w_meta.npz", __meta__=meta(b"\xff\xfe{"))
+    np.savez(tmp_path / "w_list.npz", __meta__=meta(b"[1, 2]"))
+    np.savez(tmp_path / "w_shapes.npz", __meta__=meta(b'{"format": "ffcgs.cvae.v1", "hand": "schunk_svh_right", '
+                                                      b'"model": {}}'), **{"params/a": np.zeros(3)})
+
+
+def _grasps_on_file(tmp_path: Path, mesh_file: Path) -> None:
+    """box_grasps.npz: grasps made on `mesh_file`, which is then changed (a tiny move of one vertex)."""
+    mesh = mesh_io.load_mesh(mesh_file)
+    arrays = dict(np.load(tmp_path / "good.npz"))
+    grasp_io.save_arrays({**arrays, **mesh_io.identity(mesh_file, 1.0, mesh)}, tmp_path / "box_grasps.npz")
+    mesh.vertices[0] += 1e-4
+    mesh.export(mesh_file)
 
 
 def snapshot(folder: Path) -> dict[str, str]:
@@ -143,6 +195,62 @@ CASES = [
     (["dataset", "info", "notes.txt"], "notes.txt"),
     (["dataset", "info", "notes.txt", "--png", "a_file"], "--png a_file is a file, not a folder"),
     (["bench", "--batches", "0"], r"--batches must be integers in \[1, 1000000\]"),
+    # issue 36: tracebacks before
+    (["grasp", "mug", "--poses", "p_empty.npy"], r"wrist poses in p_empty.npy holds no poses \(shape \(0, 4, 4\)\)"),
+    (["grasp", "mug", "--poses", "p_str.npy"], "wrist poses in p_str.npy must hold real numbers, got dtype <U1"),
+    (["grasp", "mug", "--poses", "p_complex.npy"], "p_complex.npy must hold real numbers, got dtype complex128"),
+    (["grasp", "mug", "--poses", "g_rows.npz"], "g_rows.npz: its arrays must have one row per grasp, got 2 in "
+                                                 "wrist_pose, 3 in q"),
+    (["eval", "g_rows.npz"], "grasp file g_rows.npz: its arrays must have one row per grasp"),
+    (["show", "g_rows.npz"], "grasp file g_rows.npz: its arrays must have one row per grasp"),
+    (["eval", "g_q0d.npz"], r"g_q0d.npz: q must have shape \(B, Q\), got \(\)"),
+    (["eval", "g_strq.npz"], "g_strq.npz: q must hold real numbers"),
+    (["eval", "g_scale.npz"], "g_scale.npz: object_scale must be one number > 0, got 'abc'"),
+    (["show", "g_scale.npz"], "g_scale.npz: object_scale must be one number > 0, got 'abc'"),
+    (["show", "g_channels.npz"], "g_channels.npz: channel_names must be a list of strings"),
+    (["grasp", "mug", "--config", "random.toml"], "config file random.toml is not UTF-8 text: it is a file of another"),
+    (["grasp", "mug", "--config", "png.toml"], "config file png.toml is not UTF-8 text: it is a PNG image"),
+    (["grasp", "mug", "--config", "bool_iters.toml"], "config key grasp.optim.iters must be int, got True"),
+    (["grasp", "--depth", "emptyframes", "--config", "bounds.toml"], "config key bounds must be a list, got 'x'"),
+    (["grasp", "mug", "--hand", "random_hand.toml"], "hand spec random_hand.toml is not UTF-8 text"),
+    (["grasp", "mug", "--hand", "hand_mjcf.toml"], "hand spec hand_mjcf.toml mjcf must be a string, got 3"),
+    (["train", "--out", "a_file"], "--out a_file is a file, not a folder"),
+    (["grasp", "mug", "--seed", str(2**63)], r"seed must be an integer in \[0, 9223372036854775807\]"),
+    (["render-depth", "mug", "--seed", str(2**63)], r"--seed must be an integer in \[0, 9223372036854775807\]"),
+    (["render-depth", "mug", "--seed", "-1"], r"--seed must be an integer in \[0, 9223372036854775807\]"),
+    (["dataset", "build", "--objects", "meshes", "--out", "d.mcap", "--seed", str(2**63)], "seed must be an integer"),
+    (["train", "--seed", str(2**63)], "seed must be an integer in"),
+    (["grasp", "mug", "--weights", "w_meta.npz"], "w_meta.npz is not an ffcgs checkpoint: its __meta__ entry is not "
+                                                  "JSON text"),
+    (["grasp", "mug", "--weights", "w_list.npz"], "w_list.npz is not an ffcgs checkpoint: its __meta__ entry is not a "
+                                                  "JSON object"),
+    # issue 36: unclear messages before
+    (["grasp", "dir.obj"], "mesh file dir.obj is a folder, not a file"),
+    (["eval", "dir.npz"], "grasp file dir.npz is a folder, not a file"),
+    (["grasp", "mug", "--poses", "dir.npy"], "pose file dir.npy is a folder, not a file"),
+    (["grasp", "mug", "--config", "dir.toml"], "config file dir.toml is a folder, not a file"),
+    (["grasp", "mug", "--hand", "dir.toml"], "hand spec dir.toml is a folder, not a file"),
+    (["grasp", "mug", "--weights", "dir.npz"], "cvae weights file dir.npz is a folder, not a file"),
+    (["dataset", "info", "dir.npz"], "dataset file dir.npz is a folder, not a file"),
+    (["train", "--data.path", "dir.npz"], "dataset file dir.npz is a folder, not a file"),
+    (["dataset", "build", "--objects", "a_file", "--out", "d.mcap"], "objects directory a_file is a file, not a folder"),
+    (["grasp", "--depth", "fr_json"], "fr_json/camera.json is not UTF-8 text: it is a PNG image"),
+    (["grasp", "--depth", "emptyframes"], "depth folder emptyframes is empty: it holds no depth frames"),
+    (["grasp", "stl.obj"], "stl.obj is not a Wavefront OBJ: it looks like a binary STL"),
+    (["grasp", "obj.stl"], "obj.stl is not an STL: it looks like a Wavefront OBJ"),
+    (["grasp", "random.ply"], "random.ply is not a PLY mesh: it is a file of another format"),
+    (["eval", "box_grasps.npz"], r"box.stl \(scale 1\) is not the object these grasps were made for \(.*box.stl, "
+                                 r"scale 1\): its content changed since \(content hash"),
+    (["eval", "g_none.npz", "--all"], "g_none.npz has no grasps$"),
+    (["eval", "g_33.npz"], r"grasp file g_33.npz: wrist_pose must have shape \(B, 4, 4\), got \(2, 3, 3\)"),
+    (["eval", "g_nan.npz"], r"grasp file g_nan.npz: wrist_pose contains NaN or inf \(grasp 0\)"),
+    (["eval", "g_scaled.npz"], "grasp file g_scaled.npz: wrist_pose must be rigid transforms"),
+    (["eval", "g_q16.npz"], "grasp file g_q16.npz: q has 16 channels, hand schunk_svh_right has 9: pass --hand"),
+    (["eval", "g_sha.npz"], "grasp file g_sha.npz: object_sha256 must be one string"),
+    (["grasp", "mug", "--config", "latin1.toml"], "latin1.toml is not UTF-8 text: byte 5 is not UTF-8"),
+    (["grasp", "mug", "--weights", "w_shapes.npz"], "w_shapes.npz: its parameters do not fit its model config"),
+    (["dataset", "info", "notes.txt"], "notes.txt is not an MCAP file .bad magic.: it is a text file"),
+    (["dataset", "info", "magic.mcap"], r"magic.mcap is not a readable MCAP file: it is truncated or corrupt \(a record"),
 ]
 
 
