@@ -101,7 +101,9 @@ class Plan:
             if suffixes and Path(o.path).suffix.lower() not in suffixes:
                 raise FfcgsError(f"{o.flag} {o.path}: the command writes {what} there, so the name must end in "
                                  f"{' or '.join(suffixes)}")
-        for o, _ in outs:
+        for o, op in outs:
+            if op in updated:  # the reader of the input speaks first; the write is checked when it happens
+                continue
             if o.format == "folder":
                 files.check_folder_output(o.path, o.flag, self.overwrite)
             else:
