@@ -35,12 +35,14 @@ FORMATS: dict[str, tuple[str, tuple[str, ...]]] = {
 
 @dataclasses.dataclass(frozen=True)
 class Input:
-    """A file or folder the command reads. `path` may also be a built-in name (`mug`), which is no file and is
-    not compared. `updated`: the command writes its results back into it on purpose."""
+    """A file the command reads, or with `folder` a folder whose files it reads (depth frames, a mesh folder).
+    `path` may also be a built-in name (`mug`), which is no file and is not compared. `updated`: the command writes
+    its results back into it on purpose."""
 
     flag: str
     path: str | None
     updated: bool = False
+    folder: bool = False
 
 
 @dataclasses.dataclass(frozen=True)
@@ -77,7 +79,7 @@ class Plan:
                 if op == ip and not i.updated:
                     raise FfcgsError(f"{o.flag} {o.path} is the input {_name(i)}: writing it would destroy it; "
                                      "give the output another name")
-                if op != ip and _inside(op, ip):
+                if i.folder and op != ip and _inside(op, ip):  # (a file input given as a folder: its reader says)
                     raise FfcgsError(f"{o.flag} {o.path} lies inside the input folder {_name(i)}, which the "
                                      "command reads; write it elsewhere")
                 if o.format == "folder" and _inside(ip, op):

@@ -51,7 +51,7 @@ def test_every_command_has_a_plan():
     (Plan((), (Output("--out", "x.npz", "npz"), Output("--png", "x.jpg", "png"))), "must end in .png"),
     (Plan((), (Output("--out", "x.txt", "npz"),)), "must end in .npz"),
     (Plan((), (Output("--out", "dir", "folder"), Output("--png", "dir/p.png", "png"))), "inside the --out folder"),
-    (Plan((Input("frames", "dir"),), (Output("--out", "dir/s.npz", "npz"),)), "inside the input folder"),
+    (Plan((Input("frames", "dir", folder=True),), (Output("--out", "dir/s.npz", "npz"),)), "inside the input folder"),
     (Plan((Input("object", "dir/m.stl"),), (Output("--out", "dir", "folder"),)), "holds the input"),
     (Plan((), (Output("--out", ".", "folder"),)), "current folder"),
     (Plan((), (Output("--out", "dir", "folder"),)), "did not write"),
@@ -97,7 +97,7 @@ def test_random_plans_pass_only_when_no_two_paths_meet(tmp_path_factory, inputs,
                 p.write_bytes(b"x")
             else:
                 p.mkdir(parents=True, exist_ok=True)
-        plan = Plan(tuple(Input(f"in{i}", n) for i, n in enumerate(inputs)),
+        plan = Plan(tuple(Input(f"in{i}", n, folder=not Path(n).suffix) for i, n in enumerate(inputs)),
                     tuple(Output(f"--o{i}", n, f) for i, (n, f) in enumerate(outputs)))
         real = lambda n: Path(os.path.realpath(root / n))  # noqa: E731
         try:

@@ -520,7 +520,7 @@ def _weights(g: GraspConfig) -> Input:
 
 # What each command reads and writes (`output_plan`), checked before it runs.
 PLANS: dict[str, Callable[..., Plan]] = {
-    "grasp": lambda c: Plan((Input("object", c.object), Input("--depth", c.depth), Input("--poses", c.poses),
+    "grasp": lambda c: Plan((Input("object", c.object), Input("--depth", c.depth, folder=True), Input("--poses", c.poses),
                              Input("--hand", c.hand), _weights(c.grasp)),
                             (Output("--out", c.out, "npz"), Output("--mcap", c.mcap, "mcap"),
                              Output("--png", c.png, "png"))),
@@ -535,12 +535,12 @@ PLANS: dict[str, Callable[..., Plan]] = {
     "hand": lambda c: Plan((Input("--object", c.object), Input("--hand", c.hand)), (Output("--png", c.png, "png"),)),
     "render-depth": lambda c: Plan((Input("object", c.object),),
                                    (Output("--out", c.out, "folder"), Output("--png", c.png, "png")), c.overwrite),
-    "fuse": lambda c: Plan((Input("frames", c.frames),), (Output("--out", c.out, "npz"), Output("--png", c.png, "png"),
+    "fuse": lambda c: Plan((Input("frames", c.frames, folder=True),), (Output("--out", c.out, "npz"), Output("--png", c.png, "png"),
                                                           Output("--mesh", c.mesh, "mesh"))),
     "show": lambda c: Plan((Input("grasps", c.grasps), Input("--object", c.object), Input("--hand", c.hand))),
-    "dataset build": lambda c: Plan((Input("--objects", c.objects or None), Input("--hand", c.hand)),
+    "dataset build": lambda c: Plan((Input("--objects", c.objects or None, folder=True), Input("--hand", c.hand)),
                                     (Output("--out", c.out, "mcap"),)),
-    "dataset info": lambda c: Plan((Input("dataset", c.dataset), Input("--objects", c.objects)),
+    "dataset info": lambda c: Plan((Input("dataset", c.dataset), Input("--objects", c.objects, folder=True)),
                                    (Output("--json", c.json, "json"), Output("--png", c.png, "folder")), c.overwrite),
     "dataset export": lambda c: Plan((Input("dataset", c.dataset),),
                                      (Output("--out", c.out, "npz" if c.out.lower().endswith(".npz") else "folder"),),

@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 from mcap.writer import Writer
 
+from ffcgs_jax import files
 from ffcgs_jax.cli import main as cli_main
 from ffcgs_jax.dataset import export
 from ffcgs_jax.dataset import mcap_io as dio
@@ -70,7 +71,7 @@ def test_export_folder_per_record_and_old_files(tmp_path, capsys):
     code, stdout, err = run(capsys, "dataset", "export", str(V1_FILE), "--out", str(out))
     assert code == 0, err
     assert stdout.strip() == f"wrote 3 files to {out}: 3 records, 5 grasps"
-    assert sorted(p.name for p in out.iterdir()) == [f"{r.record_id}.npz" for r in recs]
+    assert sorted(p.name for p in out.iterdir()) == [files.MANIFEST] + [f"{r.record_id}.npz" for r in recs]
     for rec in recs:
         with np.load(out / f"{rec.record_id}.npz") as z:
             a = {k: z[k] for k in z.files}
