@@ -77,6 +77,7 @@ def test_results_block_is_replaced_not_duplicated(depth, tmp_path):
     (["--objects", "builtin,nope"], "--objects: unknown group(s) nope"),
     (["--objects", "builtin", "--views", "1,x"], "--views: expected a comma list of integers >= 1"),
     (["--objects", "builtin", "--noise", "loud"], "--noise: expected a comma list of off, on"),
+    (["--objects", "builtin", "--scene", "room"], "--scene: expected a comma list of plane, table, clutter"),
     (["--speed", "--object", "no_such_thing"], "--object: neither a built-in"),
     (["--res", "8"], "argument --res: must be >= 16"),
 ])

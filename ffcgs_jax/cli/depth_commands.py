@@ -129,9 +129,18 @@ def fuse_rows(fo, source: str) -> list[tuple[str, str]]:
     return [("depth frames", f"{len(fo.frames.names)} from {source} ({fo.frames.depth.shape[2]}x"
                              f"{fo.frames.depth.shape[1]})"),
             ("table height (m)", f"{fo.table_z:.4f} ({'fitted' if fo.table_fitted else 'given'})"),
+            ("object", _object_row(fo)),
             ("fused grid", f"{r}^3, voxel {float(g.voxel_size) * 1000:.2f} mm, fused in {fo.fuse_s * 1000:.0f} ms"),
             ("fused surface", f"{len(fo.mesh.faces)} triangles, extents (cm) "
                               + " x ".join(f"{e * 100:.1f}" for e in fo.mesh.extents))]
+
+
+def _object_row(fo) -> str:
+    if fo.masks_given:
+        return "the given masks (no isolation)"
+    if fo.isolation is None:
+        return "every reading above the table (not isolated)"
+    return "isolated: " + fo.isolation.summary()
 
 
 def true_mesh_rows(gs) -> list[tuple[str, str]]:

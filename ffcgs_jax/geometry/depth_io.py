@@ -390,6 +390,16 @@ def world_points(frames: Frames) -> Float[np.ndarray, "N H W 3"]:
     return world
 
 
+def pixel_points(frames: Frames, n: np.ndarray, r: np.ndarray, c: np.ndarray) -> Float[np.ndarray, "P 3"]:
+    """World points of the readings at frame `n`, row `r`, column `c` (integer arrays of one shape P), metres;
+    NaN where there is no reading."""
+    cam = transform(np.linalg.inv(frames.K), np.stack([c, r, np.ones_like(c)], -1).astype(np.float64))
+    d = frames.depth[n, r, c].astype(np.float64)
+    world = transform(frames.poses[n, :3, :3], cam * d[:, None]) + frames.poses[n, :3, 3]
+    world[d <= 0] = np.nan
+    return world
+
+
 def sample_points(frames: Frames, count: int, seed: int = 0,
                   bounds: Float[np.ndarray, "2 3"] | None = None) -> Float[np.ndarray, "P 3"]:
     """World points of `count` readings drawn at random (with replacement; the masks do not matter: the table is
@@ -399,10 +409,7 @@ def sample_points(frames: Frames, count: int, seed: int = 0,
     if not len(valid):
         return np.zeros((0, 3))
     pick = valid[np.random.default_rng(seed).integers(0, len(valid), count)] if len(valid) > count else valid
-    n, r, c = np.unravel_index(pick, frames.depth.shape)
-    cam = transform(np.linalg.inv(frames.K), np.stack([c, r, np.ones_like(c)], -1).astype(np.float64))
-    cam = cam * frames.depth[n, r, c].astype(np.float64)[:, None]
-    world = transform(frames.poses[n, :3, :3], cam) + frames.poses[n, :3, 3]
+    world = pixel_points(frames, *np.unravel_index(pick, frames.depth.shape))
     if bounds is not None:
         world = world[((world[:, :2] >= bounds[0, :2]) & (world[:, :2] <= bounds[1, :2])).all(1)]
     return world

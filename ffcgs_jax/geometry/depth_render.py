@@ -1,7 +1,9 @@
 """Synthetic depth frames of a mesh on a table, for tests and demos of TSDF fusion (host NumPy and trimesh).
 
 Depth is ray cast: one ray through each pixel centre, against the mesh's triangles (Moller-Trumbore, each triangle
-against the pixels of its projected bounding box only) and against the table plane z = table_z. Cameras follow
+against the pixels of its projected bounding box only), against the table plane z = table_z, and against the
+triangles of a background scene if one is given (a finite table, a floor, a wall, other objects: `depth_scene`),
+which are clipped at the camera's plane first, as a room around the camera reaches behind it. Cameras follow
 `depth_io`'s conventions (OpenCV axes, depth = camera z, camera-to-world poses, world z up). trimesh's intersector
 (`mesh.ray.intersects_location`, without embree) finds the same hits (the tests compare), but its broad phase lets
 each ray through ~240 of the mug's 1020 triangles: 2.5-18 s per 640x480 view, 44 s for five views, against 0.36 s
@@ -25,6 +27,7 @@ FOCAL_640 = 615.0  # px: a RealSense D435's colour-aligned focal length at 640x4
 NOISE_A = 0.0015  # 1/m: sigma = NOISE_A * z^2 (module docstring)
 DROPOUT = 0.02  # share of readings lost
 _MIN_DEPTH = 1e-6  # m: mesh points nearer the camera plane cannot be projected
+_NEAR = 1e-3  # m: background triangles are clipped to camera z >= this (the room extends behind the camera)
 _PAIRS = 1 << 20  # (triangle, pixel) pairs per chunk of `_cast`: ~200 MB of temporaries
 
 
@@ -105,10 +108,32 @@ def _cast(tris: np.ndarray, K: np.ndarray, width: int, height: int) -> np.ndarra
     return depth
 
 
+def clip_near(tris: Float[np.ndarray, "T 3 3"], near: float = _NEAR) -> Float[np.ndarray, "U 3 3"]:
+    """The parts of camera-frame triangles `tris` at camera z >= `near`, as triangles (a triangle with one vertex
+    behind becomes two, with two behind one, with three none)."""
+    behind = tris[..., 2] < near
+    count = behind.sum(1)
+    # the odd vertex out (the one behind, or the one in front) first, the order kept cyclic so windings survive
+    odd = np.where(count == 1, np.argmax(behind, 1), np.argmin(behind, 1))
+    t = np.take_along_axis(tris, ((odd[:, None] + np.arange(3)) % 3)[..., None], 1)
+    a, b, c = t[:, 0], t[:, 1], t[:, 2]
+
+    def cut(p, q):  # the point of segment p-q at z = near
+        s = (near - p[:, 2]) / np.where(q[:, 2] != p[:, 2], q[:, 2] - p[:, 2], 1.0)
+        return p + s[:, None] * (q - p)
+
+    ab, ac = cut(a, b), cut(a, c)
+    one = count == 1  # a behind: the quad ab b c ac
+    two = count == 2  # b, c behind: the triangle a ab ac
+    return np.concatenate([tris[count == 0], np.stack([ab, b, c], 1)[one], np.stack([ab, c, ac], 1)[one],
+                           np.stack([a, ab, ac], 1)[two]])
+
+
 def render_depth(mesh: trimesh.Trimesh, K: Float[np.ndarray, "3 3"], pose: Float[np.ndarray, "4 4"], width: int,
-                 height: int, table_z: float | None = None
+                 height: int, table_z: float | None = None, scene: trimesh.Trimesh | None = None
                  ) -> tuple[Float[np.ndarray, "H W"], Bool[np.ndarray, "H W"]]:
-    """Exact depth of one view: pixel-centre rays against the mesh and, if given, the table plane z = table_z.
+    """Exact depth of one view: pixel-centre rays against the mesh and, if given, the table plane z = table_z and
+    the background `scene`.
 
     Args:
         mesh: the object, metres.
@@ -116,6 +141,7 @@ def render_depth(mesh: trimesh.Trimesh, K: Float[np.ndarray, "3 3"], pose: Float
         pose: (4, 4) camera-to-world pose.
         width, height: image size in pixels.
         table_z: height of the (infinite) table plane, or None for no table.
+        scene: background triangles (world frame, metres; anything but the object), or None.
 
     Returns:
         depth (H, W) float64 camera z in metres, 0 where the ray hits nothing; mask (H, W), True where the object
@@ -131,6 +157,10 @@ def render_depth(mesh: trimesh.Trimesh, K: Float[np.ndarray, "3 3"], pose: Float
         down = dirs[:, 2] < 0
         s = np.where(down, (table_z - eye[2]) / np.where(down, dirs[:, 2], -1.0), np.inf)
         table = np.where(s > 0, s, np.inf)
+    if scene is not None and len(scene.faces):
+        back = clip_near(((np.asarray(scene.vertices, np.float64) - eye) @ pose[:3, :3])[np.asarray(scene.faces)])
+        if len(back):
+            table = np.minimum(table, _cast(back, K, width, height))
     depth = np.minimum(obj, table)
     mask = obj <= table
     depth = np.where(np.isfinite(depth), depth, 0.0)
@@ -150,7 +180,8 @@ def add_noise(depth: Float[np.ndarray, "*shape"], rng: np.random.Generator, a: f
 
 def render_views(mesh: trimesh.Trimesh, views: int = 5, width: int = 640, height: int = 480, noise: bool = False,
                  seed: int | np.random.Generator = 0, table: bool = True, elevation_deg: float = 35.0,
-                 distance: float = 0.45, noise_a: float = NOISE_A, dropout: float = DROPOUT) -> Frames:
+                 distance: float = 0.45, noise_a: float = NOISE_A, dropout: float = DROPOUT,
+                 scene: trimesh.Trimesh | None = None) -> Frames:
     """Depth frames of `mesh` resting on a table, from `views` cameras around it (`view_poses` about the centre of
     its bounding box) with RealSense-like intrinsics (`camera_K`).
 
@@ -163,6 +194,8 @@ def render_views(mesh: trimesh.Trimesh, views: int = 5, width: int = 640, height
         table: render the table plane (False: only the object; pixels past it read 0).
         elevation_deg, distance: camera placement (degrees above the horizontal, metres to the centre).
         noise_a, dropout: the noise model's parameters.
+        scene: background triangles around the object (`depth_scene.scene_mesh`: a finite table, floor, wall,
+            other objects), or None.
 
     Returns:
         Frames with float32 depth and the object masks (True where the ray's first hit is the object).
@@ -172,7 +205,7 @@ def render_views(mesh: trimesh.Trimesh, views: int = 5, width: int = 640, height
     K = camera_K(width, height)
     poses = view_poses(np.asarray(mesh.bounds, np.float64).mean(0), views, elevation_deg, distance)
     table_z = float(mesh.bounds[0, 2]) if table else None
-    rendered = [render_depth(mesh, K, p, width, height, table_z) for p in poses]
+    rendered = [render_depth(mesh, K, p, width, height, table_z, scene) for p in poses]
     depth = np.stack([d for d, _ in rendered])
     if noise:
         depth = add_noise(depth, np.random.default_rng(seed), noise_a, dropout)

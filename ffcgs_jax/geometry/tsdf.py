@@ -408,20 +408,23 @@ def _world_points(depth, K, poses):
     return jnp.einsum("nij,nhwj->nhwi", poses[:, :3, :3], cam) + poses[:, None, None, :3, 3]
 
 
-def _fuse_device(depth, mask, K, poses, table_z, box, margin, min_margin, trunc_voxels, res, cut_table, fit_box):
+def _fuse_device(depth, mask, K, poses, table_z, box, margin, min_margin, trunc_voxels, res, cut_table, crop,
+                 fit_box):
     """`fuse` from the frames to the grid in one compiled function: the object's readings (mask, above the table
-    band, in the box), the grid frame around them (as `grid_frame`), the fusion and the conversion."""
+    band, in the box if `crop`), the grid frame around them or around the box (as `grid_frame`), the fusion and
+    the conversion."""
     p = _world_points(depth, K, poses)
     obj = mask & (depth > 0)
     if cut_table:
         obj = obj & (p[..., 2] - table_z >= depth_io.TABLE_BAND)
+    if crop:
+        obj = obj & jnp.all((p >= box[0][None, None, None]) & (p <= box[1][None, None, None]), -1)
     if fit_box:  # the cube around the object's readings
         lo = jnp.min(jnp.where(obj[..., None], p, jnp.inf), axis=(0, 1, 2))
         hi = jnp.max(jnp.where(obj[..., None], p, -jnp.inf), axis=(0, 1, 2))
         if cut_table:
             lo = lo.at[2].min(table_z)  # the object's hidden underside reaches the table
     else:
-        obj = obj & jnp.all((p >= box[0][None, None, None]) & (p <= box[1][None, None, None]), -1)
         lo, hi, margin, min_margin = box[0], box[1], 0.0, 0.0
     size = jnp.max(hi - lo)
     side = size + 2.0 * jnp.maximum(margin * size, min_margin)
@@ -436,12 +439,13 @@ def _fuse_device(depth, mask, K, poses, table_z, box, margin, min_margin, trunc_
     return _to_grid(V, h), origin, h, jnp.sum(obj), (V < 0).any(), (V < 0).all()
 
 
-_fuse_jit = jax.jit(_fuse_device, static_argnames=("res", "cut_table", "fit_box"))
+_fuse_jit = jax.jit(_fuse_device, static_argnames=("res", "cut_table", "crop", "fit_box"))
 
 
 def fuse(frames: depth_io.Frames, res: int = 64, trunc_voxels: float = 4.0,
          bounds: Float[np.ndarray, "2 3"] | None = None, table_z: float | None = None, margin: float = 0.15,
-         min_margin: float = 0.01, on_device: bool = True, points: np.ndarray | None = None) -> GradientSDF:
+         min_margin: float = 0.01, on_device: bool = True, points: np.ndarray | None = None,
+         crop: Float[np.ndarray, "2 3"] | None = None) -> GradientSDF:
     """Depth frames of one object fused into its GradientSDF.
 
     Typical use: `frames, tz = depth_io.remove_table(depth_io.load_frames(path))`, then `fuse(frames, table_z=tz)`.
@@ -463,6 +467,9 @@ def fuse(frames: depth_io.Frames, res: int = 64, trunc_voxels: float = 4.0,
             kept as the tests' reference. The compiled path is also the faster on a CPU (bench/depth.py --speed:
             281 against 568 ms on two cores).
         points: for the host steps, `depth_io.world_points(frames)` when the caller has it already.
+        crop: (2, 3) box (min, max corners, metres) or None: readings outside it become background, as with
+            `bounds`, but the grid is still fitted to the readings left (`depth_isolate`'s box around the object).
+            Ignored when `bounds` is given.
 
     Returns:
         The GradientSDF, arrays in JAX's default float dtype.
@@ -472,11 +479,14 @@ def fuse(frames: depth_io.Frames, res: int = 64, trunc_voxels: float = 4.0,
     check_range("trunc_voxels", trunc_voxels, 1, 16)
     check_range("margin", margin, 0.0, 2.0)
     check_range("min_margin", min_margin, 0.0, 1.0)
+    crop = None if crop is None or bounds is not None else depth_io.check_bounds(crop)
     if on_device:
-        return _fuse_on_device(frames, res, trunc_voxels, bounds, table_z, margin, min_margin)
+        return _fuse_on_device(frames, res, trunc_voxels, bounds, table_z, margin, min_margin, crop)
     p = depth_io.world_points(frames) if points is None else points
     if table_z is not None:
         frames, table_z = depth_io.remove_table(frames, table_z, points=p)  # idempotent after the caller's own
+    if crop is not None:
+        frames = depth_io.crop(frames, crop, points=p)
     if bounds is not None:
         box = depth_io.check_bounds(bounds)
         frames = depth_io.crop(frames, box, points=p)
@@ -499,16 +509,16 @@ _NO_READING = ("no depth reading on the object in any frame (all readings are ze
                "table)")
 
 
-def _fuse_on_device(frames, res, trunc_voxels, bounds, table_z, margin, min_margin) -> GradientSDF:
+def _fuse_on_device(frames, res, trunc_voxels, bounds, table_z, margin, min_margin, crop) -> GradientSDF:
     fdt = jnp.result_type(float)
-    box = np.zeros((2, 3)) if bounds is None else depth_io.check_bounds(bounds)
+    box = depth_io.check_bounds(bounds) if bounds is not None else np.zeros((2, 3)) if crop is None else crop
     if table_z is not None and not np.isfinite(table_z):
         raise FfcgsError(f"table_z must be finite, got {table_z}")
     f = lambda x: jnp.asarray(x, fdt)  # noqa: E731
     grid, origin, h, n_obj, any_inside, all_inside = _fuse_jit(
         f(frames.depth), jnp.asarray(depth_io.object_mask(frames)), f(frames.K), f(frames.poses),
         f(0.0 if table_z is None else table_z), f(box), f(margin), f(min_margin), f(trunc_voxels), res=int(res),
-        cut_table=table_z is not None, fit_box=bounds is None)
+        cut_table=table_z is not None, crop=bounds is not None or crop is not None, fit_box=bounds is None)
     if int(n_obj) == 0:
         raise FfcgsError(_NO_READING)
     _check_sides(bool(any_inside), bool(all_inside))
