@@ -106,7 +106,7 @@ def test_grasp_from_depth_with_the_true_object(capsys, frames_dir, tmp_path):
     (["grasp", "--depth", "{tmp}/nothing"], "depth input not found"),
     (["fuse", "{tmp}/nothing"], "depth input not found"),
     (["fuse", "{frames}", "--res", "8"], r"--res must be an integer in \[16, 128\]"),
-    (["fuse", "{frames}", "--mesh", "{tmp}/m.txt"], "--mesh .*/m.txt: the command writes a mesh there, so the name must end in .ply or .obj or .stl"),
+    (["fuse", "{frames}", "--mesh", "{tmp}/m.txt"], "--mesh .*/m.txt: .* must end in .ply or .obj or .stl"),
     (["fuse", "{frames}", "--table-z", "0.5"], "no depth reading left on the object"),
     (["render-depth", "box", "--views", "0"], r"--views must be an integer"),
     (["render-depth", "no_such_object"], "no_such_object"),
