@@ -8,7 +8,9 @@
 Objects (`--objects`, comma list of groups): `ycb-test` (the YCB test split: the sorted *.stl of `--ycb` with
 index % 5 == 4, or every file with `--every-file`), `builtin` (the package's meshes) and `procedural` (`--procedural`
 shapes of `geometry.procedural` with seed 1000, not a training seed); `ycb-train` (the other YCB files: what
-`bench/fit_score.py` fits the score on, never the test split). Rows: every sampler of `--samplers` under
+`bench/fit_score.py` fits the score on, never the test split); `complex` (`--complex` shapes of
+`procedural.complex_shape` with seed 2000: many lobes, thin fins, tori, cups with handles, bowls, C-shapes, plates
+with holes). Rows: every sampler of `--samplers` under
 every `--config` (a GraspConfig TOML as `ffcgs grasp --config` reads it, or `default` for the package defaults;
 label `sampler` for the defaults, `STEM:sampler` for a file); `--n`, `--seed` and the sampler always come from the
 command line.
@@ -58,8 +60,9 @@ from ffcgs_jax.synthesis.config import SAMPLERS, GraspConfig
 from eval_grasp import ycb_test  # noqa: E402 - the sibling script's test-split rule
 
 REPO = Path(__file__).resolve().parents[1]
-GROUPS = ("ycb-test", "builtin", "procedural", "ycb-train")
+GROUPS = ("ycb-test", "builtin", "procedural", "complex", "ycb-train")
 PROCEDURAL_SEED = 1000  # the training shapes use other seeds: these are unseen
+COMPLEX_SEED = 2000  # the complex family (`procedural.complex_shape`), unseen likewise; bench/validated_call.py's
 TABLE2_K = 20  # the paper's Table II averages the 20 lowest-energy grasps per object
 BEGIN, END = "<!-- quality:begin -->", "<!-- quality:end -->"
 PROG = "quality.py"
@@ -104,6 +107,8 @@ def parser() -> Parser:
     ap.add_argument("--ycb", default=str(REPO.parent / "shared" / "objects" / "ycb"), help="folder of YCB *.stl")
     ap.add_argument("--every-file", action="store_true", help="--ycb holds only the test split: take every file")
     ap.add_argument("--procedural", type=_int_at_least(0), default=8, help="procedural shapes (seed 1000)")
+    ap.add_argument("--complex", type=_int_at_least(0), default=8,
+                    help="complex procedural shapes (seed 2000): lobes, fins, holes, cups, bowls")
     ap.add_argument("--samplers", default="cvae,geometric", help=f"comma list of {', '.join(SAMPLERS)}")
     ap.add_argument("--config", action="append", default=[], metavar="PATH",
                     help="GraspConfig TOML (e.g. configs/paper.toml) or 'default'; repeat for several (default: "
@@ -194,6 +199,8 @@ def object_sources(args) -> list[tuple[str, str, object]]:
         elif group == "ycb-train":  # what scores and thresholds are fitted on, never the test split
             test = set(ycb_test(Path(args.ycb)))
             out += [(group, f.stem, str(f)) for f in sorted(Path(args.ycb).glob("*.stl")) if f not in test]
+        elif group == "complex":
+            out += [(group, *procedural.complex_shape(COMPLEX_SEED, i)) for i in range(args.complex)]
         else:
             for i in range(args.procedural):
                 name, mesh = procedural.shape(PROCEDURAL_SEED, i)
@@ -279,7 +286,8 @@ def run(args) -> dict:
         "n": args.n, "seed": args.seed, "friction": args.friction, "protocols": args.protocol_list,
         "physics_backend": runner.resolve_backend(args.backend, per_call)[0], "hand": args.hand,
         "max_grasps_per_object": args.max_grasps_per_object, "contact_tol": args.contact_tol,
-        "procedural": args.procedural, "procedural_seed": PROCEDURAL_SEED, "ycb": args.ycb,
+        "procedural": args.procedural, "procedural_seed": PROCEDURAL_SEED, "complex": args.complex,
+        "complex_seed": COMPLEX_SEED, "ycb": args.ycb,
         "every_file": args.every_file, "rows": {label: dataclasses.asdict(cfg) for label, cfg in rows},
     }
     records, seen = [], set()

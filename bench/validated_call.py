@@ -32,8 +32,9 @@ from ffcgs_jax import files
 from ffcgs_jax.errors import FfcgsError
 from ffcgs_jax.physics.config import ALL_PROTOCOLS, BACKENDS, PROTOCOLS, PhysicsConfig
 
+from quality import COMPLEX_SEED  # noqa: E402 - the sibling script's complex family (seed 2000, unseen)
+
 PROG = "bench/validated_call.py"
-COMPLEX_SEED = 2000  # the complex family's seed here: not a training seed
 
 
 def parse_args(argv=None) -> argparse.Namespace:
