@@ -7,6 +7,7 @@ import hashlib
 import json
 import os
 import re
+import time
 from pathlib import Path
 
 import numpy as np
@@ -273,3 +274,19 @@ def test_a_fuse_that_fails_writing_its_last_output_writes_none(work, capsys, mon
     out, err = capsys.readouterr()
     assert code == 2 and "No space left" in err and "wrote" not in out
     assert _tree(work) == before  # neither s.npz nor s.png, nor a temporary
+
+
+@pytest.mark.parametrize("argv,module,message", [
+    (["eval", "g.npz", "--video", "v.mp4"], "imageio_ffmpeg", "--video .mp4 needs imageio-ffmpeg"),
+    (["grasp", "mug", "--show"], "viser", "--show needs viser"),
+])
+def test_a_missing_optional_module_is_named_before_the_work(work, capsys, monkeypatch, argv, module, message):
+    import importlib.util
+
+    find = importlib.util.find_spec
+    monkeypatch.setattr(importlib.util, "find_spec", lambda name, *a: None if name == module else find(name, *a))
+    before = _tree(work)
+    t0 = time.perf_counter()
+    assert cli_main.main(argv) == 2
+    assert message in _error(capsys) and time.perf_counter() - t0 < 5  # nothing compiled or run
+    assert _tree(work) == before

@@ -296,6 +296,16 @@ class GraspCmd:
             raise FfcgsError("--table-z and --bounds belong to --depth (a mesh's table is at its lowest point)")
         if self.depth is not None and self.validate and self.object is None:
             raise FfcgsError("--validate with --depth needs --object: the physics test simulates the true mesh")
+        if self.show:
+            _needs("viser", "--show needs viser for the 3D view: pip install -e \".[viz]\" (or pip install viser)")
+
+
+def _needs(module: str, line: str) -> None:
+    """Refuse with `line` now, before any work, when an optional module the options need is not installed."""
+    import importlib.util
+
+    if importlib.util.find_spec(module) is None:
+        raise FfcgsError(line)
 
 
 def _protocols(name: str) -> tuple[str, ...]:
@@ -450,6 +460,8 @@ class EvalCmd:
             raise FfcgsError(f"--scale must be a finite number > 0, got {self.scale}")
         if self.video_index is not None and self.video is None:
             raise FfcgsError("--video-index chooses the grasp of --video; give --video FILE.gif too")
+        if self.video is not None and self.video.lower().endswith(".mp4"):
+            _needs("imageio_ffmpeg", "--video .mp4 needs imageio-ffmpeg: pip install imageio-ffmpeg (or write a .gif)")
 
 
 def run_eval(cmd: EvalCmd) -> None:
