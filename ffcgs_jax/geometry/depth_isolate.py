@@ -154,6 +154,8 @@ def isolate(frames: depth_io.Frames, plane: Float[np.ndarray, " 4"],
         above &= ((p >= bounds[0]) & (p <= bounds[1])).all(1)
     near = above & (dist <= REACH)
     if not near.any():
+        if not above.any():  # nothing above the table at all: fusion says so in its error, a warning would not help
+            return frames, None
         warnings.warn(f"object isolation: no reading above the table within {100 * REACH:g} cm of the cameras' "
                       f"focus ({', '.join(f'{x:.3f}' for x in f)} m); fusing every reading above the table",
                       stacklevel=2)

@@ -153,9 +153,16 @@ def test_implausible_part_warns(mug):
     with pytest.warns(UserWarning, match=r"object isolation kept a part of 5\d\.\d x .* wider than 40 cm"):
         fo = depth_object.from_depth(f._replace(mask=None), res=24)
     assert fo.isolation.extents[0] > 0.45
-    # nothing above the table near the focus: a table plane given 20 cm up, over the mug
-    g = depth_scene.render_scene(mug, "table", 3, 80, 60)._replace(mask=None)
+    # nothing above the table near the focus: a table plane given 15 cm up, over the mug (9.5 cm tall); only a
+    # wall 55 cm behind rises above it, seen from 1.2 m
+    g = depth_scene.render_scene(mug, depth_scene.Scene(wall=0.55), 3, 80, 60, distance=1.2)._replace(mask=None)
     with pytest.warns(UserWarning, match="no reading above the table within 50 cm of the cameras' focus"):
+        same, none = depth_isolate.isolate(g, np.array([0.0, 0.0, 1.0, -0.15]))
+    assert none is None and same is g
+    # nothing above the table at all: no warning, the fusion's own error says it
+    g = depth_scene.render_scene(mug, "table", 3, 80, 60)._replace(mask=None)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
         same, none = depth_isolate.isolate(g, np.array([0.0, 0.0, 1.0, -0.2]))
     assert none is None and same is g
 
