@@ -2,7 +2,7 @@
 
 import dataclasses
 
-from ffcgs_jax.config import check_range
+from ffcgs_jax.config import check_integer, check_range
 from ffcgs_jax.errors import FfcgsError
 
 PROTOCOLS = ("lift-shake", "six-dir")  # our physics tests: what `--protocol both` and `evaluate` run by default
@@ -10,6 +10,8 @@ PROTOCOLS = ("lift-shake", "six-dir")  # our physics tests: what `--protocol bot
 DEXGRASPBENCH = ("dexgraspbench", "dexgraspbench-bodex")
 ALL_PROTOCOLS = PROTOCOLS + DEXGRASPBENCH  # every protocol `protocols.run_protocol` implements
 BACKENDS = ("auto", "cpu", "mjx", "warp")
+# the object's collision geometry (`collision.parts`): the default first
+COLLISIONS = ("voxel-hulls", "coacd", "vhacd", "voxel-boxes", "patch-hulls")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -65,8 +67,15 @@ class PhysicsConfig:
         max_initial_penetration: a grasp whose hand reaches deeper than this into the object at the start
             (metres, MuJoCo contact depth against the convex parts) fails without simulating.
         workers: threads for CPU MuJoCo (`mujoco.rollout`); 0 = all cores.
+        collision: how the object becomes convex parts for MuJoCo (`COLLISIONS`, `physics.collision`):
+            "voxel-hulls" (hulls of voxel clusters, bounded by its grid), "coacd" (CoACD, bounded search), "vhacd",
+            "voxel-boxes", "patch-hulls". bench/RESULTS.md, "Collision geometry", compares them.
+        collision_budget: wall-clock seconds the decomposition may take; past it the object gets a coarser
+            voxel-hull geometry and a one-line warning.
+        voxel_cells: voxels along the object's longest side for the voxel methods.
+        voxel_tol: voxel-hulls: metres a part may reach out of the solid beyond the voxel layer next to it.
         coacd_threshold: CoACD's concavity threshold for the object's convex decomposition (smaller = more parts).
-        max_hulls: at most this many convex parts (CoACD `max_convex_hull`).
+        max_hulls: at most this many convex parts (CoACD `max_convex_hull`, V-HACD's, voxel-hulls').
         hull_vertices: at most this many vertices per part (CoACD `max_ch_vertex`).
     """
 
@@ -97,6 +106,10 @@ class PhysicsConfig:
     max_rot_deg: float = 15.0
     max_initial_penetration: float = 0.01
     workers: int = 0
+    collision: str = "voxel-hulls"
+    collision_budget: float = 20.0
+    voxel_cells: int = 64
+    voxel_tol: float = 0.002
     coacd_threshold: float = 0.05
     max_hulls: int = 32
     hull_vertices: int = 64
@@ -128,6 +141,11 @@ class PhysicsConfig:
         check_range("physics.accel", self.accel, 0.0, 1000.0)
         check_range("physics.max_rot_deg", self.max_rot_deg, 0.0, 180.0)
         check_range("physics.workers", self.workers, 0, 4096)
+        if self.collision not in COLLISIONS:
+            raise FfcgsError(f"unknown physics.collision {self.collision!r}; choices: {', '.join(COLLISIONS)}")
+        check_range("physics.collision_budget", self.collision_budget, 0.0, 3600.0)
+        check_integer("physics.voxel_cells", self.voxel_cells, 8, 256)
+        check_range("physics.voxel_tol", self.voxel_tol, 0.0, 0.05)
         check_range("physics.coacd_threshold", self.coacd_threshold, 0.01, 1.0)
         check_range("physics.max_hulls", self.max_hulls, 1, 1024)
         check_range("physics.hull_vertices", self.hull_vertices, 8, 4096)

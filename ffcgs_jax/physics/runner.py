@@ -81,11 +81,12 @@ def resolve_backend(name: str, n: int | None = None) -> tuple[str, str | None]:
     return "warp", None
 
 
-def scenes(spec: HandSpec, mesh: trimesh.Trimesh, cfg: PhysicsConfig, protocols, table_z: float | None = None
-           ) -> dict[str, PhysicsScene]:
+def scenes(spec: HandSpec, mesh: trimesh.Trimesh, cfg: PhysicsConfig, protocols, table_z: float | None = None,
+           parts=None) -> dict[str, PhysicsScene]:
     """One compiled scene per protocol (lift-shake: gravity and table; six-dir: neither; DexGraspBench's: its
-    own contacts and solver, `dexgraspbench.config`)."""
-    parts = convex.decompose(mesh, cfg)
+    own contacts and solver, `dexgraspbench.config`). `parts`: the object's convex parts; default
+    `convex.decompose(mesh, cfg)`."""
+    parts = convex.decompose(mesh, cfg) if parts is None else parts
     tz = float(mesh.bounds[0, 2]) if table_z is None else table_z
     out = {}
     for p in protocols:
@@ -219,10 +220,11 @@ def _contact_state(scene: PhysicsScene, d: mujoco.MjData) -> tuple[float, bool]:
 
 def evaluate(spec: HandSpec, mesh: trimesh.Trimesh, wrist_pose, q, cfg: PhysicsConfig = PhysicsConfig(),
              protocols=PROTOCOLS, backend: str | None = None, table_z: float | None = None,
-             progress: Callable[[int], None] | None = None, squeeze_dir=None) -> dict[str, np.ndarray]:
+             progress: Callable[[int], None] | None = None, squeeze_dir=None, parts=None) -> dict[str, np.ndarray]:
     """Run the physics test on grasps (wrist_pose (B, 4, 4) object frame, q (B, Q) channels) on `backend`
     (default `cfg.backend`; "auto" is resolved by `resolve_backend`). `squeeze_dir` (B, Q): the grasps' own squeeze
     directions (a grasp file's `squeeze_dir`); default: computed from the fingertips near the mesh (`prepare`).
+    `parts`: the object's collision geometry as convex (vertices, faces) pairs; default `convex.decompose(mesh, cfg)`.
 
     CPU runs the grasps in groups of `GROUP_PER_THREAD` x threads, so `progress(k)` (k grasps done) ticks often;
     MJX runs them as one batch, warp in batches of up to `backend_warp.MAX_WORLDS` worlds; grasps whose warp
@@ -248,7 +250,7 @@ def evaluate(spec: HandSpec, mesh: trimesh.Trimesh, wrist_pose, q, cfg: PhysicsC
         raise FfcgsError(f"protocol {bench[0]} runs on the CPU backend only (MuJoCo's no-slip solver, which "
                          f"{backend} lacks): use --backend cpu or auto")
     tick = progress or (lambda n: None)
-    built = scenes(spec, mesh, cfg, protocols, table_z)
+    built = scenes(spec, mesh, cfg, protocols, table_z, parts)
     # the scenes differ only in gravity, table, the hold weld and contact softness and friction, none of which the
     # hand-object contacts, the fingertip Jacobians or the squeeze direction depend on: read the grasps once
     grasps = _grasps(built[protocols[0]], mesh, wrist_pose, q, cfg, squeeze_dir)
