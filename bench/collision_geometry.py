@@ -28,7 +28,7 @@ from ffcgs_jax.geometry import mesh_io, objects, procedural
 from ffcgs_jax.physics import collision, voxel_parts
 from ffcgs_jax.physics.config import PROTOCOLS, PhysicsConfig
 
-YCB = Path("/work/shared/objects/ycb")
+YCB = Path(__file__).resolve().parents[2] / "shared" / "objects" / "ycb"
 METHODS = ("today", "voxel-hulls", "coacd", "vhacd", "voxel-boxes", "patch-hulls")
 TODAY = dict(threshold=0.05, max_convex_hull=32, max_ch_vertex=64, decimate=True, seed=0)
 PROBE_GAP = 0.004  # m outside the mesh for a probe point to count as an opening
@@ -46,6 +46,14 @@ def object_set(spec: str) -> list[tuple[str, trimesh.Trimesh]]:
     return [(f.stem, mesh_io.load_mesh(str(f))) for i, f in enumerate(files) if keep(i)]
 
 
+def method_config(method: str, budget: float) -> PhysicsConfig:
+    """The PhysicsConfig of a method name, "NAME" or "NAME:field=value,..." (a variant: `voxel-hulls:voxel_cells=96,
+    max_hulls=64`; fields of PhysicsConfig)."""
+    name, _, rest = method.partition(":")
+    fields = {k: float(v) if "." in v or "e" in v else int(v) for k, v in (kv.split("=") for kv in rest.split(",") if kv)}
+    return PhysicsConfig(collision=name, collision_budget=budget, **fields)
+
+
 def decompose(method: str, mesh: trimesh.Trimesh, budget: float, today_budget: float):
     """(parts, seconds, fell_back)."""
     t0 = time.perf_counter()
@@ -56,7 +64,7 @@ def decompose(method: str, mesh: trimesh.Trimesh, budget: float, today_budget: f
             fell = parts is None
             parts = parts if parts is not None else []
         else:
-            parts = collision.parts(mesh, PhysicsConfig(collision=method, collision_budget=budget))
+            parts = collision.parts(mesh, method_config(method, budget))
             fell = any(issubclass(w.category, collision.BudgetWarning) for w in caught)
     return parts, time.perf_counter() - t0, fell
 
@@ -149,8 +157,18 @@ def summary(rows: list[dict]) -> list[dict]:
     return out
 
 
-def agreement(sets, methods, n: int, budget: float, today_budget: float) -> list[dict]:
-    """Share of identical physics outcomes per protocol against today's CoACD geometry, grasp by grasp."""
+def pick(objs: list, part: str | None) -> list:
+    """`part` "K/N": the objects at index K, K + N, ... (parallel runs split a set; `--merge` joins them)."""
+    if not part:
+        return objs
+    k, n = (int(x) for x in part.split("/"))
+    return objs[k::n]
+
+
+def agreement(sets, methods, n: int, budget: float, today_budget: float, part: str | None = None,
+              log: list | None = None) -> list[dict]:
+    """Share of identical physics outcomes per protocol against today's CoACD geometry, grasp by grasp; `log`
+    collects each object's per-grasp outcomes (what `--merge` pools)."""
     import ffcgs_jax as fj
     from ffcgs_jax.hand import spec as hand_spec
     from ffcgs_jax.physics import runner
@@ -159,7 +177,7 @@ def agreement(sets, methods, n: int, budget: float, today_budget: float) -> list
     cfg = PhysicsConfig(friction=0.6, backend="cpu")
     same = {m: {p: [] for p in PROTOCOLS} for m in methods if m != "today"}
     for s in sets:
-        for name, mesh in object_set(s):
+        for name, mesh in pick(object_set(s), part):
             gs = fj.synthesize(hand, mesh, fj.GraspConfig(n=n))
             ok = np.asarray(gs.arrays["valid"], bool)
             if not ok.any():
@@ -175,10 +193,17 @@ def agreement(sets, methods, n: int, budget: float, today_budget: float) -> list
                 for p in PROTOCOLS:
                     key = f"{p.replace('-', '_')}_success"
                     same[m][p].extend((res[key] == ref[key]).tolist())
+                    if log is not None:
+                        log.append(dict(set=s, object=name, method=m, protocol=p, ref=ref[key].tolist(),
+                                        got=res[key].tolist()))
             print(f"{name}: {int(ok.sum())} valid grasps", flush=True)
+    return pooled(same)
+
+
+def pooled(same: dict) -> list[dict]:
     rows = []
     for m, by in same.items():
-        both = np.logical_and(*[np.asarray(by[p]) for p in PROTOCOLS])
+        both = np.logical_and(*[np.asarray(by[p], bool) for p in PROTOCOLS])
         rows.append(dict(method=m, grasps=len(both), **{p: float(np.mean(by[p])) for p in PROTOCOLS},
                          both=float(both.mean()) if len(both) else None))
     return rows
@@ -190,14 +215,28 @@ def fmt(v, spec=".2f") -> str:
 
 def main():
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--objects", nargs="+", default=["builtin", "complex 7"])
-    ap.add_argument("--methods", nargs="+", default=list(METHODS), choices=METHODS)
+    ap.add_argument("--objects", nargs="*", default=["builtin", "complex 7"])
+    ap.add_argument("--methods", nargs="+", default=list(METHODS),
+                    help=f"{', '.join(METHODS)}, or a variant NAME:field=value,... of PhysicsConfig's fields")
+    ap.add_argument("--part", help="K/N: only every N-th object from the K-th, for parallel runs")
+    ap.add_argument("--merge", nargs="+", type=Path, help="no run: pool the agreement of these --json files")
     ap.add_argument("--agree", nargs="*", default=[], help="object sets for the physics agreement")
     ap.add_argument("--n", type=int, default=16)
     ap.add_argument("--budget", type=float, default=20.0)
     ap.add_argument("--today-budget", type=float, default=60.0)
     ap.add_argument("--json", type=Path)
     args = ap.parse_args()
+    if args.merge:
+        logs = [r for f in args.merge for r in json.loads(f.read_text()).get("log", [])]
+        same = {}
+        for r in logs:
+            same.setdefault(r["method"], {p: [] for p in PROTOCOLS})[r["protocol"]].extend(
+                np.equal(r["got"], r["ref"]).tolist())
+        print_agreement(pooled(same), len({(r["set"], r["object"]) for r in logs}))
+        return
+    for m in args.methods:
+        if m.partition(":")[0] not in METHODS:
+            ap.error(f"unknown method {m!r}; methods: {', '.join(METHODS)}")
     rows = geometry_rows(args.objects, args.methods, args.budget, args.today_budget)
     table = summary(rows)
     print("| set | method | objects | median s | worst s | fell back | parts | vertices | p50 mm | p95 mm | max mm "
@@ -208,14 +247,25 @@ def main():
               f"{r['fell_back']} | {fmt(r['parts'], '.0f')} | {fmt(r['vertices'], '.0f')} | {fmt(r['p50_mm'])} | "
               f"{fmt(r['p95_mm'])} | {fmt(r['max_mm'], '.1f')} | {fmt(r['volume_err'], '.3f')} | "
               f"{fmt(r['open'], '.2f')} |")
-    agree = agreement(args.agree, args.methods, args.n, args.budget, args.today_budget) if args.agree else []
+    log = []
+    agree = agreement(args.agree, args.methods, args.n, args.budget, args.today_budget, args.part, log) \
+        if args.agree else []
     if agree:
-        print("\n| method | grasps | lift-shake same | six-dir same | both same |\n|---|---|---|---|---|")
-        for r in agree:
-            print(f"| {r['method']} | {r['grasps']} | {r['lift-shake']:.3f} | {r['six-dir']:.3f} | "
-                  f"{fmt(r['both'], '.3f')} |")
+        print_agreement(agree, len({(r["set"], r["object"]) for r in log}))
     if args.json:
-        args.json.write_text(json.dumps(dict(rows=rows, summary=table, agreement=agree), indent=1))
+        args.json.write_text(json.dumps(dict(rows=rows, summary=table, agreement=agree, log=log), indent=1))
+
+
+def print_agreement(rows: list[dict], objects: int) -> None:
+    from ffcgs_jax.physics.protocols import wilson
+
+    print(f"\n{objects} objects\n\n| method | grasps | lift-shake same | six-dir same | both same (95 % CI) |\n"
+          "|---|---|---|---|---|")
+    for r in rows:
+        k = round(r["both"] * r["grasps"]) if r["both"] is not None else 0
+        lo, hi = wilson(k, r["grasps"])
+        print(f"| {r['method']} | {r['grasps']} | {r['lift-shake']:.3f} | {r['six-dir']:.3f} | "
+              f"{fmt(r['both'], '.3f')} ({100 * lo:.0f}-{100 * hi:.0f} %) |")
 
 
 if __name__ == "__main__":
