@@ -15,6 +15,7 @@ identical to today's CoACD geometry ("today": threshold 0.05, 32 hulls, 64 verti
 
 import argparse
 import json
+import os
 import statistics
 import time
 import warnings
@@ -28,7 +29,7 @@ from ffcgs_jax.geometry import mesh_io, objects, procedural
 from ffcgs_jax.physics import collision, voxel_parts
 from ffcgs_jax.physics.config import PROTOCOLS, PhysicsConfig
 
-YCB = Path(__file__).resolve().parents[2] / "shared" / "objects" / "ycb"
+YCB = Path(os.environ.get("FFCGS_YCB", Path(__file__).resolve().parents[2] / "shared" / "objects" / "ycb"))
 METHODS = ("today", "voxel-hulls", "coacd", "vhacd", "voxel-boxes", "patch-hulls")
 TODAY = dict(threshold=0.05, max_convex_hull=32, max_ch_vertex=64, decimate=True, seed=0)
 PROBE_GAP = 0.004  # m outside the mesh for a probe point to count as an opening
