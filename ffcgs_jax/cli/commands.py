@@ -266,6 +266,8 @@ class GraspCmd:
             (physics_protocols, physics_backend, physics_config_json) in the grasp file.
         protocol: the protocols `--validate` asks for: lift-shake, six-dir, both (the two), dexgraspbench or
             dexgraspbench-bodex.
+        need: with `--validate`: 0 simulates every valid grasp with every protocol; k > 0 stops once k grasps
+            pass (candidates in the analytic order, a chunk at a time, six-dir first), for the best grasp sooner.
         grasp: synthesis settings (flags without prefix: --n, --sampler, --iters, --res, --d0, ...).
         physics: physics settings for `--validate` (flags without prefix: --backend, --friction, ...).
     """
@@ -282,11 +284,15 @@ class GraspCmd:
     hand: str = "svh"
     validate: bool = False
     protocol: str = "both"
+    need: int = 0
     grasp: GraspConfig = GraspConfig()
     physics: PhysicsConfig = PhysicsConfig()
 
     def check(self) -> None:
+        from ffcgs_jax.config import check_integer
+
         _protocols(self.protocol)
+        check_integer("--need", self.need, 0, 1_000_000)
 
     def check_inputs(self) -> None:
         """What the command line must combine (a config file may hold any part of it, so not in `check`)."""
@@ -391,11 +397,12 @@ def _validate(gs, hand, mesh, cmd: GraspCmd):
 
     protocols = _protocols(cmd.protocol)
     gs = dataclasses.replace(gs, arrays=_physics_check(hand.spec, mesh, gs.arrays, gs["valid"], cmd.physics,
-                                                       protocols))
+                                                       protocols, cmd.need))
     return gs, physics_validate.summary_rows(gs, protocols)
 
 
-def _physics_check(spec, mesh, arrays: dict, tested: np.ndarray, cfg: PhysicsConfig, protocols) -> dict:
+def _physics_check(spec, mesh, arrays: dict, tested: np.ndarray, cfg: PhysicsConfig, protocols,
+                   need: int = 0) -> dict:
     """`physics.validate.check` with a progress bar, `cfg.backend` resolved here so that a fallback from "auto" is
     said on stderr."""
     from tqdm import tqdm
@@ -403,9 +410,9 @@ def _physics_check(spec, mesh, arrays: dict, tested: np.ndarray, cfg: PhysicsCon
     from ffcgs_jax.physics import validate as physics_validate
 
     n = int(np.sum(tested))
-    cfg = dataclasses.replace(cfg, backend=physics_backend(cfg, n))
+    cfg = dataclasses.replace(cfg, backend=physics_backend(cfg, min(n, physics_validate.chunk_size()) if need else n))
     with tqdm(total=n * len(protocols), desc="physics", unit="grasp", disable=None, leave=False) as bar:
-        return physics_validate.check(spec, mesh, arrays, tested, protocols, cfg, progress=bar.update)
+        return physics_validate.check(spec, mesh, arrays, tested, protocols, cfg, progress=bar.update, need=need)
 
 
 def physics_backend(cfg: PhysicsConfig, n: int) -> str:

@@ -10,6 +10,7 @@ what was checked, so a file records which protocols, backend and settings judged
 
 import dataclasses
 import json
+import os
 import time
 from collections.abc import Callable
 
@@ -25,7 +26,7 @@ from ffcgs_jax.physics.config import ALL_PROTOCOLS, PROTOCOLS, PhysicsConfig
 
 
 def validate(hand, mesh: trimesh.Trimesh, grasps, protocols=PROTOCOLS, cfg: PhysicsConfig = PhysicsConfig(),
-             candidates: str = "valid", progress: Callable[[int], None] | None = None):
+             candidates: str = "valid", need: int = 0, progress: Callable[[int], None] | None = None):
     """Simulate `grasps` on `mesh` and return them ranked with the outcome first.
 
     Args:
@@ -38,6 +39,11 @@ def validate(hand, mesh: trimesh.Trimesh, grasps, protocols=PROTOCOLS, cfg: Phys
             (`runner.resolve_backend`).
         candidates: "valid" simulates the grasps the synthesis marked valid (the others cannot come first and are
             left untested), "all" every grasp.
+        need: 0 simulates every candidate with every protocol. k > 0 stops once k grasps pass: the candidates go
+            in the analytic order, a chunk at a time (`chunk_size`), each protocol only on the grasps that passed
+            the ones before it (six-dir first: it rejects the most). The grasp a user gets first is then found in
+            a fraction of the time; the candidates after the last chunk stay untested (`physics_tested` False),
+            and a protocol not run on a grasp that already failed another has no result (NaN / False / -1).
         progress: called with the number of trials done, as they finish.
 
     Returns:
@@ -49,39 +55,87 @@ def validate(hand, mesh: trimesh.Trimesh, grasps, protocols=PROTOCOLS, cfg: Phys
     if candidates not in ("valid", "all"):
         raise FfcgsError(f"candidates must be 'valid' or 'all', got {candidates!r}")
     tested = np.ones(len(grasps["q"]), bool) if candidates == "all" else np.asarray(grasps["valid"], bool)
-    arrays = check(getattr(hand, "spec", hand), mesh, grasps.arrays, tested, protocols, cfg, progress)
+    arrays = check(getattr(hand, "spec", hand), mesh, grasps.arrays, tested, protocols, cfg, progress, need)
     return dataclasses.replace(grasps, arrays=arrays)
 
 
+def chunk_size() -> int:
+    """Candidates simulated at a time when stopping early: one round of the CPU backend's threads."""
+    return max(8, os.cpu_count() or 1)
+
+
 def check(spec: HandSpec, mesh: trimesh.Trimesh, arrays: dict[str, np.ndarray], tested: np.ndarray, protocols,
-          cfg: PhysicsConfig = PhysicsConfig(), progress: Callable[[int], None] | None = None
+          cfg: PhysicsConfig = PhysicsConfig(), progress: Callable[[int], None] | None = None, need: int = 0
           ) -> dict[str, np.ndarray]:
     """`validate` on a grasp file's arrays (`wrist_pose`, `q`, optional `squeeze_dir`): a copy with the results
-    of the grasps where `tested` is True and the record of the check added."""
+    of the grasps where `tested` is True (with `need`, of those simulated before enough passed) and the record of
+    the check added."""
     protocols = tuple(protocols)
     bad = [p for p in protocols if p not in ALL_PROTOCOLS]
     if bad or not protocols:
         raise FfcgsError(f"unknown protocol {bad[0]!r}; protocols: {', '.join(ALL_PROTOCOLS)}" if bad
                          else "the physics check needs at least one protocol")
+    if isinstance(need, bool) or not isinstance(need, (int, np.integer)) or need < 0:
+        raise FfcgsError(f"need must be an integer >= 0, got {need!r}")
     n = len(arrays["q"])
     tested = np.asarray(tested, bool)
     idx = np.flatnonzero(tested)
     arrays = dict(arrays)
-    backend, _ = runner.resolve_backend(cfg.backend, max(len(idx), 1))
+    backend, _ = runner.resolve_backend(cfg.backend, max(len(idx), 1) if not need else min(len(idx), chunk_size()))
     t0 = time.perf_counter()
-    if len(idx):
-        squeeze = arrays.get("squeeze_dir")
-        res = runner.evaluate(spec, mesh, arrays["wrist_pose"][idx], arrays["q"][idx], cfg, protocols, backend,
-                              progress=progress, squeeze_dir=None if squeeze is None else squeeze[idx])
-        arrays.update(spread(res, idx, n))
-    else:  # nothing to simulate: the record still says what would have judged them
-        arrays.update({physics_protocols.result_key(p, "success"): np.zeros(n, bool) for p in protocols})
+    squeeze = arrays.get("squeeze_dir")
+
+    def run(at: np.ndarray, which) -> dict[str, np.ndarray]:
+        return runner.evaluate(spec, mesh, arrays["wrist_pose"][at], arrays["q"][at], cfg, which, backend,
+                               progress=progress, squeeze_dir=None if squeeze is None else squeeze[at])
+
+    if len(idx) and not need:
+        arrays.update(spread(run(idx, protocols), idx, n))
+    elif len(idx):
+        tested = _until_enough(arrays, idx, n, protocols, need, run)
+    for p in protocols:  # nothing simulated (no candidate): the record still says what would have judged them
+        arrays.setdefault(physics_protocols.result_key(p, "success"), np.zeros(n, bool))
     passed = np.logical_and.reduce([arrays[physics_protocols.result_key(p, "success")] for p in protocols]) & tested
     arrays.update(physics_tested=tested, physics_passed=passed,
                   physics_protocols=np.array(json.dumps(list(protocols))), physics_backend=np.array(backend),
                   physics_config_json=np.array(json.dumps(dataclasses.asdict(cfg))),
                   physics_s=np.asarray(time.perf_counter() - t0, np.float64))
     return arrays
+
+
+def _until_enough(arrays: dict, idx: np.ndarray, n: int, protocols, need: int, run) -> np.ndarray:
+    """Simulate the candidates `idx` in the analytic order, a chunk at a time, each protocol (six-dir first) on the
+    survivors of the ones before, until `need` grasps passed them all; their results go into `arrays`. Returns
+    which grasps were simulated."""
+    analytic = {k: v for k, v in arrays.items() if k != "physics_passed"}  # not an earlier check's order
+    queue = [int(i) for i in ranking.ranked(analytic) if i in set(idx.tolist())]
+    order = sorted(protocols, key=lambda p: p != "six-dir")
+    tested = np.zeros(n, bool)
+    passed, size, fresh = 0, chunk_size(), set()
+    for start in range(0, len(queue), size):
+        alive = np.asarray(queue[start:start + size])
+        tested[alive] = True
+        for p in order:
+            res = run(alive, (p,))
+            _place(arrays, res, alive, n, fresh)
+            alive = alive[np.asarray(res[physics_protocols.result_key(p, "success")], bool)]
+            if not len(alive):
+                break
+        passed += len(alive)
+        if passed >= need:
+            break
+    return tested
+
+
+def _place(arrays: dict, results: dict[str, np.ndarray], idx: np.ndarray, n: int, fresh: set) -> None:
+    """`spread` `results` into `arrays`: a key this check already wrote (`fresh`) keeps its other rows; any other
+    (absent, or a stale result of an earlier check) is replaced whole."""
+    for k, full in spread(results, idx, n).items():
+        if k in fresh:
+            arrays[k][idx] = full[idx]
+        else:
+            arrays[k] = full
+            fresh.add(k)
 
 
 def spread(results: dict[str, np.ndarray], idx: np.ndarray, n: int) -> dict[str, np.ndarray]:

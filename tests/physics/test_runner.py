@@ -217,7 +217,7 @@ def test_eval_bad_input_one_line(capsys, ball_npz, tmp_path, args, message):
     assert code == 2 and message in err and "Traceback" not in err and len(err.strip().splitlines()) == 1, err
 
 
-def test_validate_puts_the_grasps_that_pass_first():
+def test_validate_puts_the_grasps_that_pass_first(monkeypatch):
     """Known outcomes: the enveloping grasp holds, the same grasp 5 cm off does not. The analytic order (valid,
     then E) offers the failing one first; the physics-checked order the one that holds, and keeps every grasp."""
     import ffcgs_jax as fj
@@ -239,6 +239,17 @@ def test_validate_puts_the_grasps_that_pass_first():
     assert json.loads(str(checked["physics_config_json"]))["friction"] == 1.0
     every = fj.validate(SPEC, BALL, gs, ["six-dir"], PhysicsConfig(friction=1.0, backend="cpu"), candidates="all")
     assert every["physics_passed"].tolist() == [False, True, True] and every.order().tolist() == [1, 2, 0]
+    # stopping once one passes: a chunk of one grasp at a time, in the analytic order; six-dir first, so the
+    # failing grasp never runs lift-shake, and the third is never simulated
+    arrays3 = dict(arrays, valid=np.array([True, True, True]))
+    three = fj.GraspSet(arrays3, {"E": np.zeros((2, 3))}, GraspConfig(), "ball")
+    monkeypatch.setattr(physics_validate, "chunk_size", lambda: 1)
+    early = fj.validate(SPEC, BALL, three, ["lift-shake", "six-dir"], PhysicsConfig(friction=1.0, backend="cpu"),
+                        need=1)
+    assert early["physics_tested"].tolist() == [True, True, False] and early.order()[0] == 1
+    assert early["physics_passed"].tolist() == [False, True, False]
+    assert early["six_dir_reason"][0] > 0 and early["lift_shake_reason"][0] == -1  # not run after six-dir failed
+    assert bool(early["lift_shake_success"][1]) and early["six_dir_reason"][2] == -1
     rows = dict(physics_validate.summary_rows(checked, ["six-dir"]))
     assert rows["physics-checked"].startswith("1 of 2 tested grasps pass six-dir") and \
         rows["physics-checked"].endswith("the first grasp passes")
