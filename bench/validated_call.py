@@ -46,6 +46,7 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.add_argument("--protocols", nargs="+", default=list(PROTOCOLS), choices=ALL_PROTOCOLS)
     p.add_argument("--backend", default="auto", choices=BACKENDS, help="physics backend")
     p.add_argument("--friction", type=float, default=0.6)
+    p.add_argument("--need", type=int, default=0, help="validate(need=K): stop once K grasps pass (0: test all)")
     p.add_argument("--json", default=None, help="also write every figure here")
     args = p.parse_args(argv)
     if not 1 <= args.count <= 10_000 or not 1 <= args.n <= 100_000:
@@ -61,7 +62,7 @@ def objects(args) -> list[tuple[str, object]]:
     return [procedural.complex_shape(COMPLEX_SEED, i) for i in range(args.count)]
 
 
-def one(hand, name: str, mesh, cfg, pcfg: PhysicsConfig, protocols) -> dict:
+def one(hand, name: str, mesh, cfg, pcfg: PhysicsConfig, protocols, need: int = 0) -> dict:
     import ffcgs_jax as fj
     from ffcgs_jax.physics import convex
 
@@ -70,7 +71,7 @@ def one(hand, name: str, mesh, cfg, pcfg: PhysicsConfig, protocols) -> dict:
     t1 = time.perf_counter()
     parts = convex.decompose(mesh, pcfg)
     t2 = time.perf_counter()
-    checked = fj.validate(hand, mesh, gs, protocols, pcfg)
+    checked = fj.validate(hand, mesh, gs, protocols, pcfg, need=need)
     t3 = time.perf_counter()
     first = int(checked.order()[0])
     compile_s = float(gs["compile_s"])  # a face count the process had no executable for (issue 32): apart
@@ -79,6 +80,7 @@ def one(hand, name: str, mesh, cfg, pcfg: PhysicsConfig, protocols) -> dict:
             "device_s": float(gs["synthesis_s"]), "evaluation_s": float(gs["evaluation_s"]),
             "compile_s": float(gs["compile_s"]), "parts": len(parts), "valid": int(gs["valid"].sum()),
             "passed": int(checked["physics_passed"].sum()), "first_passes": bool(checked["physics_passed"][first]),
+            "tested": int(checked["physics_tested"].sum()),
             "backend": str(checked["physics_backend"])}
 
 
@@ -97,17 +99,17 @@ def run(args) -> dict:
     objs = objects(args)
     rows = []
     with tempfile.TemporaryDirectory() as cache, _env("FFCGS_CACHE_DIR", cache):
-        warm = one(hand, "ball", fj.load_mesh("ball"), cfg, pcfg, args.protocols)  # compiles; not counted
+        warm = one(hand, "ball", fj.load_mesh("ball"), cfg, pcfg, args.protocols, args.need)  # compiles; not counted
         print(f"first call (compiling, not counted): {warm['total']:.1f} s, compile {warm['compile_s']:.1f} s",
               file=sys.stderr)
         for name, mesh in objs:
-            rows.append(one(hand, name, mesh, cfg, pcfg, args.protocols))
+            rows.append(one(hand, name, mesh, cfg, pcfg, args.protocols, args.need))
             r = rows[-1]
             print(f"{name}: {r['total']:.2f} s (synthesis {r['synthesis']:.2f}, geometry {r['geometry']:.2f}, "
                   f"physics {r['physics']:.2f}); first grasp {'passes' if r['first_passes'] else 'fails'}",
                   file=sys.stderr)
     return {"command": "python " + " ".join([PROG, *sys.argv[1:]]), "machine": machine(),
-            "protocols": args.protocols, "n": args.n, "warmup": warm, "rows": rows}
+            "protocols": args.protocols, "n": args.n, "need": args.need, "warmup": warm, "rows": rows}
 
 
 @contextlib.contextmanager
@@ -128,7 +130,9 @@ PARTS = ("synthesis", "geometry", "physics", "total")
 
 def table(report: dict) -> str:
     rows = report["rows"]
+    need = report.get("need", 0)
     lines = [f"validated call · {report['machine']} · n {report['n']} · {' + '.join(report['protocols'])} · "
+             f"{'every valid grasp simulated' if not need else f'until {need} pass'} · "
              f"physics {rows[0]['backend'] if rows else '-'} · `{report['command']}`", "",
              "| part | median (s) | worst (s) |", "|---|---|---|"]
     for k in PARTS:
@@ -140,11 +144,12 @@ def table(report: dict) -> str:
               "", f"first grasp passes every protocol on {sum(r['first_passes'] for r in rows)} of {len(rows)} "
               f"objects; a grasp passes on {sum(r['passed'] > 0 for r in rows)}", "",
               "| object | faces | synthesis (SDF / device / evaluation) | geometry (parts) | physics | total | "
-              "compile (apart) | valid | passed | first passes |", "|---|---|---|---|---|---|---|---|---|---|"]
+              "compile (apart) | valid | tested | passed | first passes |", "|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
         lines.append(f"| {r['object']} | {r['faces']} | {r['synthesis']:.2f} ({r['sdf_s']:.2f} / {r['device_s']:.2f} "
                      f"/ {r['evaluation_s']:.2f}) | {r['geometry']:.2f} ({r['parts']}) | {r['physics']:.2f} | "
-                     f"{r['total']:.2f} | {r['compile_s']:.1f} | {r['valid']} | {r['passed']} | "
+                     f"{r['total']:.2f} | {r['compile_s']:.1f} | {r['valid']} | {r.get('tested', r['valid'])} | "
+                     f"{r['passed']} | "
                      f"{'yes' if r['first_passes'] else 'no'} |")
     return "\n".join(lines) + "\n"
 
