@@ -93,7 +93,8 @@ def atomic_path(path: str | Path) -> Iterator[Path]:
         with open(tmp, "rb+") as f:
             os.fsync(f.fileno())
         if _TOGETHER is not None and resolved(path) in _TOGETHER.paths:
-            _TOGETHER.pending.append((tmp, path))
+            if (tmp, path) not in _TOGETHER.pending:  # written again in the block: the last content lands
+                _TOGETHER.pending.append((tmp, path))
             deferred = True
         else:
             os.replace(tmp, path)

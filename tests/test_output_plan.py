@@ -145,6 +145,14 @@ def test_outputs_land_together_or_not_at_all(tmp_path):
     assert a.read_text() == "new a" and b.read_text() == "new b"
 
 
+def test_an_output_written_twice_lands_once_with_the_last_content(tmp_path):
+    a = tmp_path / "a.npz"
+    with files.outputs_together([a]):
+        files.write_text(a, "first")
+        files.write_text(a, "second")
+    assert a.read_text() == "second" and sorted(p.name for p in tmp_path.iterdir()) == ["a.npz"]
+
+
 def test_an_interrupt_leaves_no_output_and_no_temporary(tmp_path):
     a = tmp_path / "a.npz"
     with pytest.raises(KeyboardInterrupt):
