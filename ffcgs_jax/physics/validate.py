@@ -59,6 +59,10 @@ def validate(hand, mesh: trimesh.Trimesh, grasps, protocols=PROTOCOLS, cfg: Phys
     return dataclasses.replace(grasps, arrays=arrays)
 
 
+# what `runner.evaluate` returns per protocol (`<protocol>_<result>`)
+RESULTS = ("success", "reason", "move", "rot", "move_dir", "rot_dir", "pregrasp_penetration")
+
+
 def chunk_size() -> int:
     """Candidates simulated at a time when stopping early: one round of the CPU backend's threads."""
     return max(8, os.cpu_count() or 1)
@@ -80,7 +84,8 @@ def check(spec: HandSpec, mesh: trimesh.Trimesh, arrays: dict[str, np.ndarray], 
     n = len(arrays["q"])
     tested = np.asarray(tested, bool)
     idx = np.flatnonzero(tested)
-    arrays = dict(arrays)
+    stale = {physics_protocols.result_key(p, s) for p in protocols for s in RESULTS}  # an earlier check's
+    arrays = {k: v for k, v in arrays.items() if k not in stale}
     backend, _ = runner.resolve_backend(cfg.backend, max(len(idx), 1) if not need else min(len(idx), chunk_size()))
     t0 = time.perf_counter()
     squeeze = arrays.get("squeeze_dir")
