@@ -277,7 +277,7 @@ def duplicate_stems(paths) -> list[str]:
     return sorted({s for s in stems if stems.count(s) > 1})
 
 
-def _kind(head: bytes) -> str:
+def kind_of(head: bytes) -> str:
     """What a file whose first bytes are `head` is, in words ("a PNG image"), for messages about a file of the
     wrong kind."""
     if not head:
@@ -309,7 +309,7 @@ def read_npz(path: str | Path, what: str = "file", label: str = ".npz", npy: boo
     with open(path, "rb") as f:
         head = f.read(8)
     if not (head.startswith(_ZIP) or (npy and head.startswith(_NPY))):
-        raise FfcgsError(f"{path} is not a readable {label}: it is {_kind(head)}")
+        raise FfcgsError(f"{path} is not a readable {label}: it is {kind_of(head)}")
     try:
         if head.startswith(_NPY):
             return {"": np.load(path, allow_pickle=False)}

@@ -29,7 +29,7 @@ def read_text(path: str | Path, what: str) -> str:
     try:
         text = data.decode("utf-8")
     except UnicodeDecodeError as e:
-        kind = files._kind(data[:8])
+        kind = files.kind_of(data[:8])
         legacy = e.start > 0 and kind in ("a text file", "a file of another format") and all(  # Latin-1 text
             b >= 0x20 or b in b"\t\n\r" for b in data[:512])
         why = f"byte {e.start} is not UTF-8 (save the file as UTF-8)" if legacy else f"it is {kind}"

@@ -85,7 +85,7 @@ def _iter_messages(path: Path) -> Iterator[tuple[str, Payload]]:
     with open(path, "rb") as f:
         head = f.read(8)
         if head != _MCAP_MAGIC:
-            raise FfcgsError(f"{path} is not an MCAP file (bad magic): it is {files._kind(head)}")
+            raise FfcgsError(f"{path} is not an MCAP file (bad magic): it is {files.kind_of(head)}")
         f.seek(0)
         it = NonSeekingReader(f).iter_messages(log_time_order=False)
         while True:

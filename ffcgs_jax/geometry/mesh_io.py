@@ -110,13 +110,13 @@ _MESH_CONTENT = ("a binary STL", "an ASCII STL", "a PLY mesh", "a binary glTF (.
 
 
 def _content(path: pathlib.Path) -> str:
-    """What the file's first bytes say it is: a mesh format's words ("a binary STL") or `files._kind`'s."""
+    """What the file's first bytes say it is: a mesh format's words ("a binary STL") or `files.kind_of`'s."""
     size = path.stat().st_size
     with open(path, "rb") as f:
         head = f.read(1024)
     if size >= 84 and size == 84 + 50 * int.from_bytes(head[80:84], "little"):
         return "a binary STL"
-    kind = files._kind(head)
+    kind = files.kind_of(head)
     if kind != "a text file":
         return kind
     words = head.lstrip().split(maxsplit=1)
