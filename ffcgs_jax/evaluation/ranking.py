@@ -12,7 +12,7 @@ import numpy as np
 def ranked(arrays: dict) -> np.ndarray:
     """Grasp indices in the offered order (module docstring) of a grasp set's or a grasp file's arrays; files
     without `valid` or `E` count every grasp valid and equal."""
-    n = len(arrays["q"])
+    n = len(arrays["valid"] if "valid" in arrays else arrays["q"])
     valid = np.asarray(arrays.get("valid", np.ones(n, bool)), bool)
     E = np.asarray(arrays.get("E", np.zeros(n)), float)
     passed = np.asarray(arrays.get("physics_passed", np.zeros(n, bool)), bool)
