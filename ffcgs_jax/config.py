@@ -100,7 +100,7 @@ def load(cls: type[T], path: str | Path) -> T:
 
 def read_toml(path: str | Path) -> dict:
     """The tables of a TOML config file, or FfcgsError naming a missing or malformed file."""
-    from ffcgs_jax.inputs import read_text
+    from ffcgs_jax.files import read_text
 
     text = read_text(path, "config file")
     try:

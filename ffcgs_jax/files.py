@@ -70,8 +70,12 @@ def discard_temporaries() -> None:
     """Remove the temporary files of writes in progress: for a process about to exit at once (the CLI's SIGINT),
     which runs no `finally` blocks."""
     for tmp in list(_ACTIVE):
-        with contextlib.suppress(OSError):
-            shutil.rmtree(tmp) if tmp.is_dir() else tmp.unlink()
+        _remove(tmp)
+
+
+def _remove(tmp: Path) -> None:
+    with contextlib.suppress(OSError):
+        shutil.rmtree(tmp) if tmp.is_dir() else tmp.unlink()
 
 
 def _temporary(path: Path) -> Path:
@@ -92,19 +96,15 @@ def atomic_path(path: str | Path) -> Iterator[Path]:
         yield tmp
         with open(tmp, "rb+") as f:
             os.fsync(f.fileno())
-        if _TOGETHER is not None and resolved(path) in _TOGETHER.paths:
-            if (tmp, path) not in _TOGETHER.pending:  # written again in the block: the last content lands
-                _TOGETHER.pending.append((tmp, path))
-            deferred = True
-        else:
+        deferred = _defer(tmp, path)
+        if not deferred:
             os.replace(tmp, path)
     except OSError as e:
         raise FfcgsError(f"cannot write {path}: {e.strerror or e}") from None
     finally:
         if not deferred:
             _ACTIVE.discard(tmp)
-            with contextlib.suppress(OSError):
-                tmp.unlink()
+            _remove(tmp)
 
 
 def atomic_write(path: str | Path, write: Callable[[IO[bytes]], object]) -> Path:
@@ -136,6 +136,16 @@ class _Together:
 _TOGETHER: _Together | None = None
 
 
+def _defer(tmp: Path, target: Path) -> bool:
+    """Queue `tmp` to replace `target` at the end of the current `outputs_together` block when `target` is one of
+    its outputs (True), else False: the caller puts it in place now."""
+    if _TOGETHER is None or resolved(target) not in _TOGETHER.paths:
+        return False
+    if (tmp, target) not in _TOGETHER.pending:  # written again in the block: the last content lands
+        _TOGETHER.pending.append((tmp, target))
+    return True
+
+
 @contextlib.contextmanager
 def outputs_together(paths) -> Iterator[None]:
     """Writes to any of `paths` inside the block land together when it ends without an error; on an error (or
@@ -151,8 +161,7 @@ def outputs_together(paths) -> Iterator[None]:
         _TOGETHER = None
         for tmp, _ in together.pending:
             _ACTIVE.discard(tmp)
-            with contextlib.suppress(OSError):
-                shutil.rmtree(tmp) if tmp.is_dir() else tmp.unlink()
+            _remove(tmp)
 
 
 def commit_outputs() -> None:
@@ -254,17 +263,15 @@ def write_folder(path: str | Path, written_by: str) -> Iterator[Path]:
     try:
         yield tmp
         write_text(tmp / MANIFEST, json.dumps({"written_by": written_by, "files": _listing(tmp)}, indent=1) + "\n")
-        if _TOGETHER is not None and resolved(path) in _TOGETHER.paths:
-            _TOGETHER.pending.append((tmp, path))
-            deferred = True
-        else:
+        deferred = _defer(tmp, path)
+        if not deferred:
             _swap_folder(tmp, path)
     except OSError as e:
         raise FfcgsError(f"cannot write {path}: {e.strerror or e}") from None
     finally:
         if not deferred:
             _ACTIVE.discard(tmp)
-            shutil.rmtree(tmp, ignore_errors=True)
+            _remove(tmp)
 
 
 _ZIP, _NPY = b"PK\x03\x04", b"\x93NUMPY"
@@ -297,15 +304,43 @@ _MAGIC = ((b"\x89MCAP", "an MCAP file"), (b"\x89PNG", "a PNG image"), (_ZIP, "a 
           (b"\xff\xd8\xff", "a JPEG image"), (b"%PDF", "a PDF document"))
 
 
-def read_npz(path: str | Path, what: str = "file", label: str = ".npz", npy: bool = False) -> dict[str, np.ndarray]:
-    """The arrays of an .npz file (or, with `npy`, of an .npy file as {"": array}), recognised by its content and
-    read without pickles. FfcgsError with one line naming the file and what is wrong with it: `what` names a
-    missing file ("grasp file not found: ..."), `label` the format ("... is not a readable grasp .npz: ...")."""
+def check_file(path: str | Path, what: str) -> Path:
+    """`path` as a Path once it is known to be a file: FfcgsError "{what} not found: PATH" or "{what} PATH is a
+    folder, not a file" otherwise."""
     path = Path(path)
     if path.is_dir():
         raise FfcgsError(f"{what} {path} is a folder, not a file")
     if not path.is_file():
         raise FfcgsError(f"{what} not found: {path}")
+    return path
+
+
+def read_text(path: str | Path, what: str) -> str:
+    """The UTF-8 text of file `path` (`check_file` first); FfcgsError naming the file and what it is when it is not
+    UTF-8 text (a PNG image, random bytes, Latin-1 text)."""
+    path = check_file(path, what)
+    try:
+        data = path.read_bytes()
+    except OSError as e:
+        raise FfcgsError(f"cannot read {what} {path}: {e.strerror or e}") from None
+    try:
+        text = data.decode("utf-8")
+    except UnicodeDecodeError as e:
+        kind = kind_of(data[:8])
+        legacy = e.start > 0 and kind in ("a text file", "a file of another format") and all(  # Latin-1 text
+            b >= 0x20 or b in b"\t\n\r" for b in data[:512])
+        why = f"byte {e.start} is not UTF-8 (save the file as UTF-8)" if legacy else f"it is {kind}"
+        raise FfcgsError(f"{what} {path} is not UTF-8 text: {why}") from None
+    if "\0" in text:
+        raise FfcgsError(f"{what} {path} is not text: it holds NUL bytes (a binary file)")
+    return text
+
+
+def read_npz(path: str | Path, what: str = "file", label: str = ".npz", npy: bool = False) -> dict[str, np.ndarray]:
+    """The arrays of an .npz file (or, with `npy`, of an .npy file as {"": array}), recognised by its content and
+    read without pickles. FfcgsError with one line naming the file and what is wrong with it: `what` names a
+    missing file ("grasp file not found: ..."), `label` the format ("... is not a readable grasp .npz: ...")."""
+    path = check_file(path, what)
     with open(path, "rb") as f:
         head = f.read(8)
     if not (head.startswith(_ZIP) or (npy and head.startswith(_NPY))):

@@ -47,7 +47,7 @@ from ffcgs_jax.dataset.schema import (
     record_from,
 )
 from ffcgs_jax.errors import FfcgsError
-from ffcgs_jax.inputs import check_file
+from ffcgs_jax.files import check_file
 
 _MCAP_MAGIC = b"\x89MCAP0\r\n"
 

@@ -28,7 +28,7 @@ from PIL import Image
 
 from ffcgs_jax import files
 from ffcgs_jax.errors import FfcgsError
-from ffcgs_jax.inputs import read_text
+from ffcgs_jax.files import read_text
 from ffcgs_jax.types import Bool, Float
 
 CAMERA_KEYS = ("fx", "fy", "cx", "cy", "width", "height", "depth_scale")

@@ -34,7 +34,7 @@ import mujoco
 import numpy as np
 
 from ffcgs_jax.errors import FfcgsError
-from ffcgs_jax.inputs import read_text
+from ffcgs_jax.files import read_text
 
 _TOP_KEYS = {"name", "mjcf", "root_body", "contact_sites", "palm_site", "palm_normal", "tetrahedron_sites",
              "channels", "coupling"}

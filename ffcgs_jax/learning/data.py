@@ -13,7 +13,7 @@ import numpy as np
 
 from ffcgs_jax.dataset import mcap_io as dataset_io
 from ffcgs_jax.errors import FfcgsError
-from ffcgs_jax.inputs import check_file
+from ffcgs_jax.files import check_file
 
 
 class TrainData(NamedTuple):

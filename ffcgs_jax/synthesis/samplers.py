@@ -28,7 +28,7 @@ from ffcgs_jax.geometry import sdf as S
 from ffcgs_jax.geometry.sdf import GradientSDF
 from ffcgs_jax.hand.kinematics import Hand
 from ffcgs_jax.hand.sites import default_standoff, palm_centre_root
-from ffcgs_jax.inputs import check_file
+from ffcgs_jax.files import check_file
 from ffcgs_jax.learning import cvae
 from ffcgs_jax.learning.weights import load_weights, shipped_weights
 from ffcgs_jax.synthesis import filters as F
