@@ -6,8 +6,8 @@
 Per method and object set: wall time of the decomposition (median, worst; each method on one core, CoACD and V-HACD
 in a worker process killed at `--budget` s, "today" at `--today-budget`), parts and vertices, surface error in mm
 (both ways between 10k points on the mesh and 10k on the boundary of the union of parts, nearest neighbours:
-p50/p95/max), volume error (|union xor mesh| / mesh volume, 8k Monte-Carlo points (trimesh's ray test, slow without embree)), and "open": the share of
-probe points at least 4 mm outside the mesh but inside its hull (handle openings, cup mouths, the gap of a C) that no
+p50/p95/max), volume error (|union xor mesh| / mesh volume, 8k Monte-Carlo points: trimesh's ray test, slow
+without embree), and "open": the share of probe points at least 4 mm outside the mesh but inside its hull (handle openings, cup mouths, the gap of a C) that no
 part covers. `--agree`: grasps synthesised on those objects (`synthesize`, `--n` each, the valid ones) run through
 `physics.runner.evaluate` (lift-shake and six-dir, friction 0.6) with each method's parts; the share of outcomes
 identical to today's CoACD geometry ("today": threshold 0.05, 32 hulls, 64 vertices, CoACD's default search).
@@ -51,7 +51,8 @@ def method_config(method: str, budget: float) -> PhysicsConfig:
     """The PhysicsConfig of a method name, "NAME" or "NAME:field=value,..." (a variant: `voxel-hulls:voxel_cells=96,
     max_hulls=64`; fields of PhysicsConfig)."""
     name, _, rest = method.partition(":")
-    fields = {k: float(v) if "." in v or "e" in v else int(v) for k, v in (kv.split("=") for kv in rest.split(",") if kv)}
+    pairs = (kv.split("=") for kv in rest.split(",") if kv)
+    fields = {k: float(v) if "." in v or "e" in v else int(v) for k, v in pairs}
     return PhysicsConfig(collision=name, collision_budget=budget, **fields)
 
 

@@ -144,7 +144,8 @@ def table(report: dict) -> str:
               "", f"first grasp passes every protocol on {sum(r['first_passes'] for r in rows)} of {len(rows)} "
               f"objects; a grasp passes on {sum(r['passed'] > 0 for r in rows)}", "",
               "| object | faces | synthesis (SDF / device / evaluation) | geometry (parts) | physics | total | "
-              "compile (apart) | valid | tested | passed | first passes |", "|---|---|---|---|---|---|---|---|---|---|---|"]
+              "compile (apart) | valid | tested | passed | first passes |",
+              "|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
         lines.append(f"| {r['object']} | {r['faces']} | {r['synthesis']:.2f} ({r['sdf_s']:.2f} / {r['device_s']:.2f} "
                      f"/ {r['evaluation_s']:.2f}) | {r['geometry']:.2f} ({r['parts']}) | {r['physics']:.2f} | "

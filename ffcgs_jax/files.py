@@ -47,13 +47,6 @@ def check_output(path: str | Path, what: str = "output") -> Path:
     return path
 
 
-def check_outputs(*named: tuple[str, str | None]) -> None:
-    """`check_output` on every (flag, path) pair of a command whose path is given, before the command does any work."""
-    for flag, path in named:
-        if path is not None:
-            check_output(path, flag)
-
-
 def check_folder(path: str | Path, what: str = "output folder") -> Path:
     """`path` as a writable folder (created if missing), or FfcgsError naming `what` and the path."""
     path = Path(path).expanduser()

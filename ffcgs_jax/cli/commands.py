@@ -178,7 +178,7 @@ def run_sdf(cmd: SdfCmd) -> None:
     dt = time.perf_counter() - t0
     sdf.save(grid, cmd.out)
     r = cmd.sdf.res
-    files.announce(f"wrote {cmd.out}: {r}^3 Gradient-SDF of {cmd.object}, voxel {float(grid.voxel_size) * 1000:.2f} mm, "
+    files.announce(f"wrote {cmd.out}: {r}^3 Gradient-SDF of {cmd.object}, voxel {float(grid.voxel_size) * 1e3:.2f} mm, "
           f"built in {dt:.2f} s")
     if cmd.png:
         from ffcgs_jax.viz.render import save_png
@@ -337,7 +337,7 @@ def run_grasp(cmd: GraspCmd) -> None:
     cmd.check_inputs()
     hand = K.load_hand(cmd.hand)
     mesh = None if cmd.object is None else mesh_io.load_mesh(cmd.object, scale=cmd.grasp.sdf.scale)
-    poses = None if cmd.poses is None else _read_poses(cmd.poses)
+    poses = None if cmd.poses is None else grasp_io.load_poses(cmd.poses)
     grid, rows = None, []
     if cmd.depth is not None:
         from ffcgs_jax.cli.depth_commands import bounds_box, fuse_rows, true_mesh_rows
@@ -527,20 +527,14 @@ def run_eval(cmd: EvalCmd) -> None:
         files.announce(f"wrote {cmd.video} (grasp {pick}, {protocols[0]}, {frames} frames)")
 
 
-def _read_poses(path: str) -> np.ndarray:
-    from ffcgs_jax.synthesis import grasp_io
-
-    return grasp_io.load_poses(path)
-
-
 def _weights(g: GraspConfig) -> Input:
     return Input("--sampling.weights", g.sampling.weights or None)
 
 
 # What each command reads and writes (`output_plan`), checked before it runs.
 PLANS: dict[str, Callable[..., Plan]] = {
-    "grasp": lambda c: Plan((Input("object", c.object), Input("--depth", c.depth, folder=True), Input("--poses", c.poses),
-                             Input("--hand", c.hand), _weights(c.grasp)),
+    "grasp": lambda c: Plan((Input("object", c.object), Input("--depth", c.depth, folder=True),
+                             Input("--poses", c.poses), Input("--hand", c.hand), _weights(c.grasp)),
                             (Output("--out", c.out, "npz"), Output("--mcap", c.mcap, "mcap"),
                              Output("--png", c.png, "png"))),
     "eval": lambda c: Plan((Input("grasps", c.grasps, updated=True), Input("--object", c.object),
@@ -554,8 +548,9 @@ PLANS: dict[str, Callable[..., Plan]] = {
     "hand": lambda c: Plan((Input("--object", c.object), Input("--hand", c.hand)), (Output("--png", c.png, "png"),)),
     "render-depth": lambda c: Plan((Input("object", c.object),),
                                    (Output("--out", c.out, "folder"), Output("--png", c.png, "png")), c.overwrite),
-    "fuse": lambda c: Plan((Input("frames", c.frames, folder=True),), (Output("--out", c.out, "npz"), Output("--png", c.png, "png"),
-                                                          Output("--mesh", c.mesh, "mesh"))),
+    "fuse": lambda c: Plan((Input("frames", c.frames, folder=True),),
+                           (Output("--out", c.out, "npz"), Output("--png", c.png, "png"),
+                            Output("--mesh", c.mesh, "mesh"))),
     "show": lambda c: Plan((Input("grasps", c.grasps), Input("--object", c.object), Input("--hand", c.hand))),
     "dataset build": lambda c: Plan((Input("--objects", c.objects or None, folder=True), Input("--hand", c.hand)),
                                     (Output("--out", c.out, "mcap"),)),

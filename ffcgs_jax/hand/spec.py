@@ -107,7 +107,8 @@ def load_spec(source: str | Path = "svh") -> HandSpec:
     joints = _strings(raw["coupling"]["joints"], f"{where} [coupling] joints")
     matrix = raw["coupling"]["matrix"]
     shape = (len(joints), len(names))
-    if not isinstance(matrix, list) or len(matrix) != shape[0] or any(not isinstance(r, list) or len(r) != shape[1] for r in matrix):
+    if not isinstance(matrix, list) or len(matrix) != shape[0] \
+            or any(not isinstance(r, list) or len(r) != shape[1] for r in matrix):
         got = (len(matrix), sorted({len(r) if isinstance(r, list) else -1 for r in matrix}))
         raise FfcgsError(f"{where}: [coupling] matrix must be {shape[0]}x{shape[1]} (joints x channels), "
                          f"got {got[0]} rows of lengths {got[1]}")

@@ -113,7 +113,8 @@ def _until_enough(arrays: dict, idx: np.ndarray, n: int, protocols, need: int, r
     survivors of the ones before, until `need` grasps passed them all; their results go into `arrays`. Returns
     which grasps were simulated."""
     analytic = {k: v for k, v in arrays.items() if k != "physics_passed"}  # not an earlier check's order
-    queue = [int(i) for i in ranking.ranked(analytic) if i in set(idx.tolist())]
+    candidates = set(idx.tolist())
+    queue = [int(i) for i in ranking.ranked(analytic) if i in candidates]
     order = sorted(protocols, key=lambda p: p != "six-dir")
     tested = np.zeros(n, bool)
     passed, size, fresh = 0, chunk_size(), set()
