@@ -82,18 +82,31 @@ def atomic_path(path: str | Path) -> Iterator[Path]:
     """A temporary path to write in place of `path`; it replaces `path` when the block ends without an error (or,
     for an output of an `outputs_together` block, when that block ends)."""
     path = Path(path)
-    tmp = _temporary(path)
+    with _staged(_temporary(path), path, _fsync, os.replace) as tmp:
+        yield tmp
+
+
+def _fsync(tmp: Path) -> None:
+    with open(tmp, "rb+") as f:
+        os.fsync(f.fileno())
+
+
+@contextlib.contextmanager
+def _staged(tmp: Path, target: Path, finish: Callable[[Path], object], put: Callable[[Path, Path], object]
+            ) -> Iterator[Path]:
+    """The one way a file or folder lands: written at `tmp`, then `finish(tmp)`, then put in place over `target`
+    by `put(tmp, target)` now, or at the end of the `outputs_together` block that declares `target`. On any failure,
+    KeyboardInterrupt included, `tmp` is removed and `target` is untouched."""
     _ACTIVE.add(tmp)
     deferred = False
     try:
         yield tmp
-        with open(tmp, "rb+") as f:
-            os.fsync(f.fileno())
-        deferred = _defer(tmp, path)
+        finish(tmp)
+        deferred = _defer(tmp, target)
         if not deferred:
-            os.replace(tmp, path)
+            put(tmp, target)
     except OSError as e:
-        raise FfcgsError(f"cannot write {path}: {e.strerror or e}") from None
+        raise FfcgsError(f"cannot write {target}: {e.strerror or e}") from None
     finally:
         if not deferred:
             _ACTIVE.discard(tmp)
@@ -251,20 +264,13 @@ def write_folder(path: str | Path, written_by: str) -> Iterator[Path]:
     tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
     shutil.rmtree(tmp, ignore_errors=True)
     tmp.mkdir()
-    _ACTIVE.add(tmp)
-    deferred = False
-    try:
-        yield tmp
-        write_text(tmp / MANIFEST, json.dumps({"written_by": written_by, "files": _listing(tmp)}, indent=1) + "\n")
-        deferred = _defer(tmp, path)
-        if not deferred:
-            _swap_folder(tmp, path)
-    except OSError as e:
-        raise FfcgsError(f"cannot write {path}: {e.strerror or e}") from None
-    finally:
-        if not deferred:
-            _ACTIVE.discard(tmp)
-            _remove(tmp)
+
+    def manifest(folder: Path) -> None:
+        write_text(folder / MANIFEST, json.dumps({"written_by": written_by, "files": _listing(folder)}, indent=1)
+                   + "\n")
+
+    with _staged(tmp, path, manifest, _swap_folder) as staged:
+        yield staged
 
 
 _ZIP, _NPY = b"PK\x03\x04", b"\x93NUMPY"
