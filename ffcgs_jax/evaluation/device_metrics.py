@@ -27,7 +27,6 @@ same figures for every grasp at once, on the device that ran the synthesis, and 
 
 import collections
 import functools
-import time
 from typing import NamedTuple
 
 import jax
@@ -39,7 +38,7 @@ from ffcgs_jax.errors import FfcgsError
 from ffcgs_jax.evaluation.metrics import MetricsConfig, sphere_basis
 from ffcgs_jax.geometry import sdf as sdf_mod
 from ffcgs_jax.geometry.sdf_build import _closest_offset, _orientation, _solid_angle_one, _tri_table
-from ffcgs_jax.synthesis import lp_jax, quality
+from ffcgs_jax.synthesis import compile_clock, lp_jax, quality
 from ffcgs_jax.types import Array, Float
 
 EPS_STARTS = 256  # spread start directions of the epsilon search
@@ -49,30 +48,28 @@ _MAX_PIVOTS = 64  # per simplex phase; the 6-row LPs here take about 10
 _PIVOTS_PER_REFRESH = 4
 _EXACT = jax.lax.Precision.HIGHEST
 _POINT_CHUNK = 4096  # fingertip points per brute-force pass (bounds the (points, triangles) work in flight)
-_MIN_FACES = 1024  # the smallest triangle bucket (see `_bucket`): tiny meshes share one executable
+FACE_CHUNK = 2048  # triangles per streamed chunk: every mesh, of 10 or 200,000 faces, runs through one executable
 _MIN_GRASPS = 32  # the smallest batch bucket: smaller batches are padded to it (see `_bucket`)
+_WIDTH = 33  # columns of a chunk row: `_tri_table`'s 12, face normal 3, edge normals 9, vertex normals 9
 Host = Array | np.ndarray
 
 
 class MeshTable(NamedTuple):
-    """A triangle mesh as the device evaluation reads it (a pytree; rows padded to a `_bucket` size with degenerate
-    triangles 1 km away, never the closest and of zero solid angle).
+    """A triangle mesh as the device evaluation reads it (a pytree): its triangles in chunks of `FACE_CHUNK` rows,
+    the last padded with degenerate triangles 1 km away, never the closest and of zero solid angle. The chunks are
+    streamed through one compiled step (`_chunk_step`), so the executables do not depend on the face count.
 
     Attributes:
-        rows: (F, 12) per triangle a - centre, b - a, c - a, |b - a|^2, (b - a).(c - a), |c - a|^2
-            (`sdf_build._tri_table`): relative to `centre`, so float32 keeps about 1e-8 m on a 10 cm object.
-        face_normal: (F, 3) outward unit face normals.
-        edge_normal: (F, 3, 3) per face, the normalised sum of the face normals sharing its edge ab, bc, ca.
-        vertex_normal: (F, 3, 3) per face, the normalised sum of the face normals sharing its vertex a, b, c.
-        centre: (3,) the frame origin of `rows`, metres.
+        chunks: per chunk a (FACE_CHUNK, 33) array, per triangle: a - centre, b - a, c - a, |b - a|^2,
+            (b - a).(c - a), |c - a|^2 (`sdf_build._tri_table`: relative to `centre`, so float32 keeps about 1e-8 m
+            on a 10 cm object); the outward unit face normal (3); per edge ab, bc, ca the normalised sum of the face
+            normals sharing it (9); per vertex a, b, c the same over the faces sharing it (9).
+        centre: (3,) the frame origin of the rows, metres.
         scale: () the mesh's scale (trimesh `scale`): "on the surface" means within 1e-9 of it, as in `metrics`.
         orient: () +1 for an outward mesh, -1 for an inside-out one (signed volume): winding numbers are multiplied.
     """
 
-    rows: Float[Array, "F 12"]
-    face_normal: Float[Array, "F 3"]
-    edge_normal: Float[Array, "F 3 3"]
-    vertex_normal: Float[Array, "F 3 3"]
+    chunks: tuple[Float[Array, "K 33"], ...]
     centre: Float[Array, " 3"]
     scale: Float[Array, ""]
     orient: Float[Array, ""]
@@ -100,9 +97,9 @@ def mesh_table(mesh: trimesh.Trimesh, dtype=None) -> MeshTable:
 
 
 def _bucket(n: int, least: int) -> int:
-    """n padded up to a power of two >= `least` up to 1024, then to multiples of 1024: few sizes, so few
+    """n padded up to a power of two >= `least` up to 1024, then to multiples of 1024: few batch sizes, so few
     executables (each costs hundreds of memory mappings on a CPU, and a process has 65,530: a test process ran out),
-    and at most 1023 rows of padding past 1024 (3,000 faces pad to 3,072, not 4,096)."""
+    and at most 1023 rows of padding past 1024."""
     return max(least, 1 << (n - 1).bit_length()) if n <= 1024 else -(-n // 1024) * 1024
 
 
@@ -132,20 +129,14 @@ def _build_table(mesh: trimesh.Trimesh, dtype) -> MeshTable:
     esum = np.zeros((inv.max() + 1, 3))
     np.add.at(esum, inv.ravel(), np.repeat(fn, 3, axis=0))
     f = len(faces)
-    f_pad = _bucket(f, _MIN_FACES)
-    pad = f_pad - f
-
-    def padded(x, fill):
-        return np.concatenate([x, np.broadcast_to(fill, (pad, *x.shape[1:]))]) if pad else x
-
-    rows = _tri_table(tri - centre, np.float64)[:f]  # padded here to our own bucket, not its chunk size
-    far = _tri_table(np.full((1, 3, 3), 1e3), np.float64)[:1]
-    up = np.array([0.0, 0.0, 1.0])
+    table = np.concatenate([_tri_table(tri - centre, np.float64)[:f], fn,  # padded below, not to its chunk size
+                            _unit_rows(esum[inv.reshape(f, 3)]).reshape(f, 9), _unit_rows(vsum[faces]).reshape(f, 9)],
+                           axis=1)
+    pad = -f % FACE_CHUNK
+    far = np.concatenate([_tri_table(np.full((1, 3, 3), 1e3), np.float64)[:1], np.tile([0.0, 0.0, 1.0], (1, 7))], 1)
+    table = np.concatenate([table, np.broadcast_to(far, (pad, _WIDTH))]).astype(dtype)
     return MeshTable(
-        rows=padded(rows, far).astype(dtype),
-        face_normal=padded(fn, up).astype(dtype),
-        edge_normal=padded(_unit_rows(esum[inv.reshape(f, 3)]), up).astype(dtype),
-        vertex_normal=padded(_unit_rows(vsum[faces]), up).astype(dtype),
+        chunks=tuple(table[i:i + FACE_CHUNK] for i in range(0, len(table), FACE_CHUNK)),
         centre=centre.astype(dtype),
         scale=np.asarray(max(float(mesh.scale), 1e-12), dtype),
         orient=np.asarray(_orientation(tri), dtype),
@@ -176,24 +167,49 @@ def _barycentric(row, closest_rel):
     return jnp.stack([1.0 - v - w, v, w])
 
 
-def _mesh_point(table: MeshTable, p):
-    """Closest point (relative to the table's centre), outward normal and signed distance of one point p (3,)
-    (relative to the centre) on the mesh; `metrics.mesh_contacts`'s rules."""
-    rows = table.rows
-    off = jax.vmap(_closest_offset, (None, 0))(p, rows)  # (F, 3): closest - p
-    d2 = jnp.sum(off * off, axis=1)
-    f = jnp.argmin(d2)
-    row = rows[f]
-    closest = p + off[f]
-    dist = jnp.sqrt(d2[f])
-    tri = jnp.stack([row[0:3], row[0:3] + row[3:6], row[0:3] + row[6:9]])
-    wind = jax.vmap(lambda r: _solid_angle_one(p, jnp.stack([r[0:3], r[0:3] + r[3:6], r[0:3] + r[6:9]])))(rows)
-    inside = table.orient * jnp.sum(wind) / (4 * jnp.pi) > 0.5
+class Nearest(NamedTuple):
+    """Per fingertip point, what the chunks streamed so far give (`_chunk_step`): the squared distance to the
+    nearest triangle, that triangle's chunk row (33,), and the sum of all triangles' solid angles."""
+
+    d2: Float[Array, " P"]
+    row: Float[Array, "P 33"]
+    solid_angle: Float[Array, " P"]
+
+
+def _chunk_step(state: Nearest, chunk: Float[Array, "K 33"], points: Float[Array, "P 3"], centre) -> Nearest:
+    """`state` updated with one chunk of triangles. Only a strictly nearer triangle replaces the kept one, so ties go
+    to the lower triangle index, as one argmin over the whole mesh would."""
+    rows = chunk[:, :12]
+
+    def one(p):
+        off = jax.vmap(_closest_offset, (None, 0))(p, rows)
+        d2 = jnp.sum(off * off, axis=1)
+        f = jnp.argmin(d2)
+        wind = jax.vmap(lambda r: _solid_angle_one(p, jnp.stack([r[0:3], r[0:3] + r[3:6], r[0:3] + r[6:9]])))(rows)
+        return d2[f], chunk[f], jnp.sum(wind)
+
+    d2, row, wind = jax.lax.map(one, points - centre[None, :], batch_size=_POINT_CHUNK)
+    nearer = d2 < state.d2
+    return Nearest(jnp.where(nearer, d2, state.d2), jnp.where(nearer[:, None], row, state.row),
+                   state.solid_angle + wind)
+
+
+def _mesh_point(centre, scale, orient, near_d2, r, solid_angle, p):
+    """Closest point, outward normal and signed distance of one point p (3,) from its nearest triangle's chunk row
+    `r` and the mesh's total solid angle there; `metrics.mesh_contacts`'s rules."""
+    del near_d2  # the distance is recomputed from the row, as the search computed it
+    p = p - centre
+    row = r[:12]
+    off = _closest_offset(p, row)
+    closest = p + off
+    dist = jnp.sqrt(jnp.sum(off * off))
+    tri0 = row[0:3]
+    inside = orient * solid_angle / (4 * jnp.pi) > 0.5
     edge_tol, _ = _tol(p.dtype)
-    bary = _barycentric(row, closest - tri[0])
+    bary = _barycentric(row, closest - tri0)
     on_edge = jnp.any(bary < edge_tol)
-    on_surface = dist <= edge_tol * table.scale
-    n = table.face_normal[f]
+    on_surface = dist <= edge_tol * scale
+    n = r[12:15]
     away = (p - closest) / jnp.where(dist > 0, dist, 1.0)
     n = jnp.where(on_edge & ~inside & ~on_surface, away, n)
     # on the surface at an edge or vertex: the shared normal of the feature the point lies on
@@ -201,16 +217,29 @@ def _mesh_point(table: MeshTable, p):
     vertex = jnp.sum(small) >= 2
     which_vertex = jnp.argmax(~small)  # the one coordinate that is not 0
     which_edge = jnp.argmax(small)  # the edge opposite the 0 coordinate: 0 -> bc (edge 1), 1 -> ca (2), 2 -> ab (0)
-    shared = jnp.where(vertex, table.vertex_normal[f, which_vertex],
-                       table.edge_normal[f, jnp.array([1, 2, 0])[which_edge]])
+    edge_normal, vertex_normal = r[15:24].reshape(3, 3), r[24:33].reshape(3, 3)
+    shared = jnp.where(vertex, vertex_normal[which_vertex], edge_normal[jnp.array([1, 2, 0])[which_edge]])
     n = jnp.where(on_edge & on_surface, shared, n)
-    return closest, n, jnp.where(inside, -dist, dist)
+    return closest + centre, n, jnp.where(inside, -dist, dist)
+
+
+def _start(points: Float[Array, "P 3"]) -> Nearest:
+    """The state before any chunk: nothing near, no solid angle."""
+    p, dt = points.shape[0], points.dtype
+    return Nearest(jnp.full((p,), jnp.inf, dt), jnp.zeros((p, _WIDTH), dt), jnp.zeros((p,), dt))
 
 
 def _mesh_contacts(table: MeshTable, points: Float[Array, "P 3"]):
-    rel = points - table.centre[None, :]
-    closest, n, d = jax.lax.map(lambda p: _mesh_point(table, p), rel, batch_size=_POINT_CHUNK)
-    return closest + table.centre[None, :], n, d
+    """Closest points, normals and signed distances of `points` on the mesh, all chunks in one trace (for benchmarks
+    that jit the contacts apart; `evaluate` streams the chunks through one compiled step instead)."""
+    state = _start(points)
+    for chunk in table.chunks:
+        state = _chunk_step(state, chunk, points, table.centre)
+    return _points_on_mesh(table.centre, table.scale, table.orient, state, points)
+
+
+def _points_on_mesh(centre, scale, orient, state: Nearest, points):
+    return jax.vmap(_mesh_point, (None, None, None, 0, 0, 0, 0))(centre, scale, orient, *state, points)
 
 
 def _sdf_contacts(grid: sdf_mod.GradientSDF, points: Float[Array, "P 3"]):
@@ -472,23 +501,49 @@ def _grasp(closest, normals, signed, q, lower, upper, centre, radius, starts, U,
     )
 
 
-def _evaluate(surface, contacts, q, lower, upper, centre, radius, cfg: MetricsConfig):
-    b, c = contacts.shape[:2]
-    flat = contacts.reshape(-1, 3)
-    if isinstance(surface, MeshTable):
-        closest, normals, signed = _mesh_contacts(surface, flat)
-    else:
-        closest, normals, signed = _sdf_contacts(surface, flat)
+def _quality(closest, normals, signed, q, lower, upper, centre, radius, cfg: MetricsConfig):
+    """Every grasp's figures from its fingertips' closest points, normals and signed distances, (B, C, ...)."""
     U = quality.basis(cfg.basis_size)  # a host array: the LP's basis is part of its compiled form
-    starts = jnp.asarray(sphere_basis(EPS_STARTS).T, contacts.dtype)
+    starts = jnp.asarray(sphere_basis(EPS_STARTS).T, closest.dtype)
     grasp = functools.partial(_grasp, U=U, cfg=cfg)
     return jax.vmap(grasp, (0, 0, 0, 0, None, None, None, None, None))(
-        closest.reshape(b, c, 3), normals.reshape(b, c, 3), signed.reshape(b, c), q, lower, upper, centre, radius,
-        starts)
+        closest, normals, signed, q, lower, upper, centre, radius, starts)
 
 
-_evaluate_jit = jax.jit(_evaluate, static_argnames=("cfg",))
-_COMPILED: dict = {}
+def _flat(contacts):
+    return contacts.reshape(-1, 3)
+
+
+def _start_mesh(contacts) -> Nearest:
+    return _start(_flat(contacts))
+
+
+def _step_mesh(state: Nearest, chunk, contacts, centre) -> Nearest:
+    return _chunk_step(state, chunk, _flat(contacts), centre)
+
+
+def _finish_mesh(state: Nearest, table_centre, scale, orient, contacts, q, lower, upper, centre, radius,
+                 cfg: MetricsConfig):
+    b, c = contacts.shape[:2]
+    closest, normals, signed = _points_on_mesh(table_centre, scale, orient, state, _flat(contacts))
+    return _quality(closest.reshape(b, c, 3), normals.reshape(b, c, 3), signed.reshape(b, c), q, lower, upper,
+                    centre, radius, cfg)
+
+
+def _evaluate_sdf(grid, contacts, q, lower, upper, centre, radius, cfg: MetricsConfig):
+    b, c = contacts.shape[:2]
+    closest, normals, signed = _sdf_contacts(grid, _flat(contacts))
+    return _quality(closest.reshape(b, c, 3), normals.reshape(b, c, 3), signed.reshape(b, c), q, lower, upper,
+                    centre, radius, cfg)
+
+
+# One executable of each, whatever the mesh: the chunks stream through `_step_jit`, one call per chunk, queued on
+# the device back to back (a 200,000-face mesh is about 100 calls of a few microseconds' dispatch each).
+_start_jit = jax.jit(_start_mesh, keep_unused=True)  # committed where the contacts are, as a step's state
+_step_jit = jax.jit(_step_mesh)
+_finish_jit = jax.jit(_finish_mesh, static_argnames=("cfg",))
+_sdf_jit = jax.jit(_evaluate_sdf, static_argnames=("cfg",))
+_COMPILED: set = set()  # the argument signatures run once already: their executables are in jit's cache
 
 
 def _signature(x) -> tuple:
@@ -498,8 +553,8 @@ def _signature(x) -> tuple:
 def evaluate(surface: MeshTable | sdf_mod.GradientSDF, contacts: Float[Array, "B C 3"], q: Float[Array, "B Q"],
              lower: Float[Host, " Q"], upper: Float[Host, " Q"], centre: Float[Host, " 3"],
              radius: Float[Host, ""] | float, cfg: MetricsConfig = MetricsConfig()) -> dict[str, Array]:
-    """`metrics.evaluate`'s figures for a batch of grasps, computed on the device in one compiled call; the results
-    stay on the device (fetch them once with `jax.device_get`).
+    """`metrics.evaluate`'s figures for a batch of grasps, computed on the device; the results stay on the device
+    (fetch them once with `jax.device_get`).
 
     Args:
         surface: the object: a `MeshTable` (`mesh_table(mesh)`), or a `GradientSDF` for an object known only by its
@@ -519,9 +574,10 @@ def evaluate(surface: MeshTable | sdf_mod.GradientSDF, contacts: Float[Array, "B
 
 def compile_evaluate(surface, contacts, q, lower, upper, centre, radius, cfg: MetricsConfig = MetricsConfig(),
                      compile: bool = True):
-    """`evaluate`'s arguments checked and compiled ahead of time: `run()` gives its result, and the seconds the
-    compilation took (0 when an earlier call of the same shapes compiled it), so callers report compile apart.
-    `compile` False: (None, 0.0) where nothing compiled yet fits, for callers that must not compile now."""
+    """`evaluate`'s arguments checked and its executables compiled: `run()` gives its result, and the seconds the
+    compilation took (0 when an earlier call of the same batch compiled it, whatever its mesh), so callers report
+    compile apart. `compile` False: (None, 0.0) where nothing compiled yet fits, for callers that must not compile
+    now. A first call runs the evaluation once to compile it; its `run()` then returns that result."""
     cfg.check()
     if contacts.ndim != 3 or contacts.shape[-1] != 3 or q.ndim != 2 or q.shape[0] != contacts.shape[0]:
         raise FfcgsError(f"device evaluation needs contacts (B, C, 3) and q (B, Q), got {contacts.shape} and "
@@ -531,16 +587,30 @@ def compile_evaluate(surface, contacts, q, lower, upper, centre, radius, cfg: Me
     b = contacts.shape[0]
     pad = _bucket(b, _MIN_GRASPS) - b  # rows repeating the last grasp, dropped from the results
     rows = lambda x: jnp.concatenate([x, jnp.repeat(x[-1:], pad, axis=0)]) if pad else x  # noqa: E731
-    args = (jax.tree.map(cast, surface), rows(contacts), rows(cast(q)), cast(lower), cast(upper), cast(centre),
-            cast(radius))
-    key = (str(jax.tree.map(_signature, args)), type(surface).__name__, cfg, jax.default_backend())
-    t0 = time.perf_counter()
-    if key not in _COMPILED:
-        if not compile:
-            return None, 0.0
-        _COMPILED[key] = _evaluate_jit.lower(*args, cfg=cfg).compile()
-    compiled = _COMPILED[key]
-    if pad:
-        return (lambda: {k: v[:b] for k, v in compiled(*args).items()}), time.perf_counter() - t0
-    return (lambda: compiled(*args)), time.perf_counter() - t0
+    surface = jax.tree.map(cast, surface)
+    args = (rows(contacts), rows(cast(q)), cast(lower), cast(upper), cast(centre), cast(radius))
+    mesh = isinstance(surface, MeshTable)
+    shapes = (surface.chunks[0], surface.centre) if mesh else surface
+    key = (str(jax.tree.map(_signature, (shapes, args))), type(surface).__name__, cfg, jax.default_backend())
 
+    def run():
+        if mesh:
+            state = _start_jit(args[0])
+            for chunk in surface.chunks:
+                state = _step_jit(state, chunk, args[0], surface.centre)
+            out = _finish_jit(state, surface.centre, surface.scale, surface.orient, *args, cfg=cfg)
+        else:
+            out = _sdf_jit(surface, *args, cfg=cfg)
+        return {k: v[:b] for k, v in out.items()} if pad else out
+
+    if key in _COMPILED:
+        return run, 0.0
+    if not compile:
+        return None, 0.0
+    with compile_clock.compiling() as seconds:
+        first = run()
+        if mesh and len(surface.chunks) == 1:  # a step's own state, as a later mesh's second chunk will pass it
+            _step_jit(_step_jit(_start_jit(args[0]), surface.chunks[0], args[0], surface.centre), surface.chunks[0],
+                      args[0], surface.centre)
+    _COMPILED.add(key)
+    return (lambda: first), seconds[0]

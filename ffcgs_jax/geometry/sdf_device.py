@@ -38,8 +38,6 @@ add one pass of all voxels over the caps. The XLA CPU backend drove several layo
 """
 
 import functools
-import logging
-import math
 from typing import NamedTuple
 
 import jax
@@ -54,8 +52,8 @@ from ffcgs_jax.types import Array, Float, Int
 _TILE = 4  # voxels per tile edge: a tile's 64 voxels share one candidate list
 _GROUP = 16  # consecutive triangles (Morton order) per group: the unit of pruning
 _SEEDS = 4  # groups nearest each tile whose triangles give the first upper bounds
-_FACE_BASE = 1024  # face counts pad to 1024 x {1, 2, 3, 4, 6, 8, 12, ...}
-_CAP_BASE = 64  # cap triangle counts pad to 64 x {1, 2, 3, 4, 6, ...}
+FACE_CHUNK = 2048  # triangles per streamed chunk (256 groups): every mesh runs through the same executables
+CAP_CHUNK = 256  # cap triangles per chunk (an open mesh's caps are a few hundred at most, a closed one has none)
 _FAR = 1e3  # m: where padding triangles sit (degenerate: never nearest, zero solid angle)
 _SLACK = 1e-6  # x grid side: margin of the pruning tests over float32 rounding (as the host builder)
 _ON_SURFACE = 1e-12  # m, as the host builder: closer than this the face normal is the gradient
@@ -75,9 +73,6 @@ class Steps(NamedTuple):
 CPU_STEPS = Steps(pair=1024, rep=64, vox=4096, tri=64, unroll=1)
 GPU_STEPS = Steps(pair=8192, rep=512, vox=1 << 18, tri=0, unroll=26)
 
-_log = logging.getLogger(__name__)
-_capacity: dict[tuple, tuple[int, int]] = {}  # problem size -> (pair_cap, rep_cap) that fitted last
-_retry_count = 0
 
 
 def signed_distance_grid_device(
@@ -106,54 +101,33 @@ def gradient_grid(
     voxel: float,
     res: int,
 ) -> Float[Array, "R R R 4"]:
-    """`signed_distance_grid_device` as one (R, R, R, 4) array: [distance, gradient] (`GradientSDF.grid`)."""
-    global _retry_count
+    """`signed_distance_grid_device` as one (R, R, R, 4) array: [distance, gradient] (`GradientSDF.grid`).
+
+    The triangles stream through the device in chunks of `FACE_CHUNK`, each through the same compiled steps, so a
+    mesh of any size reuses the executables of the first (one set per grid resolution, dtype and backend)."""
     dtype = jnp.result_type(float)
     steps = _steps()
     verts, faces = np.asarray(verts, np.float64), np.asarray(faces, np.int64)
     pk = _pack(verts, faces, np.asarray(origin, np.float64), float(voxel), res, dtype)
-    key = (len(pk.tri), len(pk.caps), res, np.dtype(dtype).name, steps)
-    # Start with room for 128 groups per tile and 2 res^2 components (a thin plate's two faces of lone voxels); only
-    # the chunks in use run, so room is cheap.
-    room = _capacity.get(key) or (_fit((-(-res // _TILE)) ** 3 * min(len(pk.tri) // _GROUP, 128), steps.pair),
-                                  _fit(2 * res * res, steps.rep))
-    args = (jnp.asarray(pk.tri), jnp.asarray(pk.rows), jnp.asarray(pk.caps), jnp.asarray(voxel, dtype),
-            jnp.asarray(pk.orient, dtype))
-    for _ in range(2):
-        grid, need = _build(*args, res=res, pair_cap=room[0], rep_cap=room[1], steps=steps)
-        need = [int(x) for x in np.asarray(need)]
-        if need[0] <= room[0] and need[1] <= room[1]:
-            _capacity[key] = room
-            return grid
-        # A list overflowed, so part of the grid is inexact. Room with a margin, kept for the next mesh of this size.
-        room = (max(room[0], _fit(need[0] * 5 // 4, steps.pair)), max(room[1], _fit(need[1] * 5 // 4, steps.rep)))
-        _retry_count += 1
-        _log.info("sdf_device: %d pairs and %d components needed; building again with room for %s",
-                  need[0], need[1], room)
-    raise RuntimeError(f"sdf_device: room for {room} still too small ({need} needed) after a retry")
+    voxel_a, orient = jnp.asarray(voxel, dtype), jnp.asarray(pk.orient, dtype)
+    tri = [jnp.asarray(pk.tri[i:i + FACE_CHUNK]) for i in range(0, len(pk.tri), FACE_CHUNK)]
+    rows = [jnp.asarray(pk.rows[i:i + FACE_CHUNK]) for i in range(0, len(pk.rows), FACE_CHUNK)]
+    state = _start(voxel_a, res=res, dtype=np.dtype(dtype).name)
+    for k, (t, r) in enumerate(zip(tri, rows)):
+        state = _near_chunk(state, t, r, jnp.int32(k * FACE_CHUNK), voxel_a, res=res, steps=steps)
+    n = res**3
+    d_cap, w_caps = jnp.full(n, jnp.inf, jnp.float32), jnp.zeros(n, jnp.float32)
+    for i in range(0, len(pk.caps), CAP_CHUNK):
+        d_cap, w_caps = _cap_chunk(d_cap, w_caps, jnp.asarray(pk.caps[i:i + CAP_CHUNK]), voxel_a, res=res)
+    comp = _sign_components(state, d_cap, voxel_a, res=res, steps=steps)
+    wind = jnp.zeros(n, jnp.float32)
+    for t in tri:
+        wind = _wind_chunk(wind, comp, t, steps=steps)
+    return _grid(state, comp, wind, w_caps, voxel_a, orient, res=res)
 
 
 def _steps() -> Steps:
     return CPU_STEPS if jax.default_backend() == "cpu" else GPU_STEPS
-
-
-def retries() -> int:
-    """How many builds in this process had to run again with larger capacities (see the module docstring)."""
-    return _retry_count
-
-
-def _fit(n: int, chunk: int) -> int:
-    """A power-of-two multiple of `chunk` holding n."""
-    return chunk << max(0, math.ceil(math.log2(max(int(n), 1) / chunk)))
-
-
-def _bucket(n: int, base: int) -> int:
-    """Smallest of base x {1, 2, 3, 4, 6, 8, 12, ...} holding n; 0 for n = 0."""
-    if n == 0:
-        return 0
-    full = base << max(0, math.ceil(math.log2(n / base)))
-    three = full * 3 // 4
-    return three if three >= n and three >= base and three % base == 0 else full
 
 
 # --- host packing -------------------------------------------------------------------------------------------------
@@ -174,10 +148,10 @@ def _pack(verts, faces, origin, voxel, res, dtype) -> _Packed:
     # The last group is filled with points (degenerate triangles) at a vertex of its last triangle: they never beat
     # that triangle, add no solid angle, and keep the group's bounding box tight.
     point = np.repeat(t[-1:, :1], 3, axis=1)
-    far = np.full((_bucket(n_grouped, _FACE_BASE) - n_grouped, 3, 3), _FAR)
+    far = np.full((-n_grouped % FACE_CHUNK, 3, 3), _FAR)
     t = np.concatenate([t, np.repeat(point, n_grouped - len(t), axis=0), far])
     caps = _hole_caps(verts, faces) - centre
-    caps = np.concatenate([caps, np.full((_bucket(len(caps), _CAP_BASE) - len(caps), 3, 3), _FAR)])
+    caps = np.concatenate([caps, np.full((-len(caps) % CAP_CHUNK, 3, 3), _FAR)])
     return _Packed(t.astype(dtype), _tri_table(t, dtype), caps.astype(np.float32), _orientation(tri))
 
 
@@ -289,18 +263,18 @@ def _tree_min(x, axis):
     return jnp.squeeze(x, axis)
 
 
-def _pair_min(tile_pts, gtab, tile, grp):
+def _pair_min(tile_pts, gtab, tile, grp, shift):
     """Least squared distance from each of the 64 voxels of tile[k] to the triangles of group grp[k], and that
-    triangle's index: (K, 64) each."""
+    triangle's index in the mesh (the chunk's groups start at group `shift`): (K, 64) each."""
     pts = tile_pts[tile]  # (K, 3, 64): gathered from a table, so the distance loop reads plain arrays
     rows = gtab[grp]  # (K, 15, G)
     d2 = _dist2(pts[:, 0:1], pts[:, 1:2], pts[:, 2:3], [rows[:, i, :, None] for i in range(15)])  # (K, G, 64)
     low = _tree_min(d2, 1)
     arg = jnp.min(jnp.where(d2 <= low[:, None], jnp.arange(_GROUP, dtype=jnp.int32)[None, :, None], _GROUP), axis=1)
-    return low, grp[:, None] * _GROUP + arg
+    return low, (grp[:, None] + shift) * _GROUP + arg
 
 
-def _scan_pairs(best, tile_pts, gtab, tile, grp, count, chunk):
+def _scan_pairs(best, tile_pts, gtab, tile, grp, count, chunk, shift):
     """Fold the pairs (tile[k], grp[k]), k < count, into the per-voxel best (squared distance, triangle), (T, 64)
     each; only the chunks holding pairs run. Ties go to the lower triangle index.
 
@@ -310,7 +284,7 @@ def _scan_pairs(best, tile_pts, gtab, tile, grp, count, chunk):
 
     def run(i):
         t = lax.dynamic_slice_in_dim(tile, i * chunk, chunk)
-        low, arg = _pair_min(tile_pts, gtab, t, lax.dynamic_slice_in_dim(grp, i * chunk, chunk))
+        low, arg = _pair_min(tile_pts, gtab, t, lax.dynamic_slice_in_dim(grp, i * chunk, chunk), shift)
         return t, jnp.where((i * chunk + jnp.arange(chunk) < count)[:, None], low, jnp.inf), arg
 
     def step(i, carry):
@@ -419,22 +393,55 @@ def _cap_terms(pts, caps):
     return jnp.sqrt(d2), w / (4 * jnp.pi)
 
 
-@functools.partial(jax.jit, static_argnames=("res", "pair_cap", "rep_cap", "steps"))
-def _build(tri, rows, caps, voxel, orient, *, res, pair_cap, rep_cap, steps):
-    """The grid (res, res, res, 4) and the entries needed in the pair and component lists (2,)."""
-    f32 = jnp.float32
-    dtype = tri.dtype
-    n_grp = tri.shape[0] // _GROUP
-    nt = -(-res // _TILE)
-    n = res**3
-    slack = _SLACK * voxel.astype(f32) * res
+class _Near(NamedTuple):
+    """The nearest triangle found so far per voxel: squared float32 distance and global triangle index in tile
+    layout (T, 64), and that triangle's `sdf_build._tri_table` row per voxel in grid order (N, 12)."""
 
-    # Step 1: nearest triangle of every voxel.
+    d2: Array
+    ids: Array
+    row: Array
+
+
+def _tile_axes(voxel, res):
+    nt = -(-res // _TILE)
+    return ((jnp.arange(nt * _TILE) - (res - 1) / 2.0) * voxel).astype(jnp.float32).reshape(nt, _TILE)
+
+
+def _voxel_points(voxel, res, dtype):
+    ijk = jnp.stack(jnp.meshgrid(*[jnp.arange(res)] * 3, indexing="ij"), -1).reshape(-1, 3)
+    return ((ijk - (res - 1) / 2.0).astype(voxel.dtype) * voxel).astype(dtype)
+
+
+def _tiles_to_grid(x, res):
+    """(T, 64) tile layout -> (res^3,) grid order."""
+    nt = -(-res // _TILE)
+    x = x.reshape((nt,) * 3 + (_TILE,) * 3).transpose(0, 3, 1, 4, 2, 5)
+    return x.reshape((nt * _TILE,) * 3)[:res, :res, :res].reshape(-1)
+
+
+@functools.partial(jax.jit, static_argnames=("res", "dtype"))
+def _start(voxel, *, res, dtype):
+    nt = -(-res // _TILE)
+    return _Near(jnp.full((nt**3, 64), jnp.inf, jnp.float32), jnp.zeros((nt**3, 64), jnp.int32),
+                 jnp.zeros((res**3, 12), dtype))
+
+
+@functools.partial(jax.jit, static_argnames=("res", "steps"))
+def _near_chunk(state: _Near, tri, rows, base, voxel, *, res, steps) -> _Near:
+    """Step 1 for one chunk of triangles (FACE_CHUNK, 3, 3), the first of them triangle `base` of the mesh.
+
+    Each tile's bound is its voxels' best so far, lowered by the `_SEEDS` groups of this chunk nearest the tile; a
+    (tile, group) pair of the chunk is scanned when the group's box lies within the bound of a voxel of the tile. The
+    pair list has room for every pair of the chunk, so it never overflows; only its chunks holding pairs run."""
+    f32 = jnp.float32
+    n_grp = FACE_CHUNK // _GROUP
+    nt = -(-res // _TILE)
+    slack = _SLACK * voxel.astype(f32) * res
     t32 = tri.astype(f32)
     gtab = _search_table(t32).reshape(n_grp, _GROUP, 15).transpose(0, 2, 1)  # (NG, 15, G)
     gv = t32.reshape(n_grp, _GROUP * 3, 3)
     gmin, gmax = gv.min(1), gv.max(1)
-    ax4 = ((jnp.arange(nt * _TILE) - (res - 1) / 2.0) * voxel).astype(f32).reshape(nt, _TILE)
+    ax4 = _tile_axes(voxel, res)
     grids = [ax4[:, None, None, :, None, None], ax4[None, :, None, None, :, None], ax4[None, None, :, None, None, :]]
     tile_pts = jnp.stack([jnp.broadcast_to(x, (nt,) * 3 + (_TILE,) * 3).reshape(nt**3, 64) for x in grids], 1)
 
@@ -442,58 +449,100 @@ def _build(tri, rows, caps, voxel, orient, *, res, pair_cap, rep_cap, steps):
     gap = [jnp.maximum(0.0, jnp.maximum(gmin[None, :, k] - hi[:, None], lo[:, None] - gmax[None, :, k])) ** 2
            for k in range(3)]
     box2 = gap[0][:, None, None] + gap[1][None, :, None] + gap[2][None, None, :]  # (nt, nt, nt, NG)
-    seeds = lax.top_k(-box2.reshape(nt**3, n_grp), min(_SEEDS, n_grp))[1].reshape(-1)
-    seed_tile = jnp.repeat(jnp.arange(nt**3, dtype=jnp.int32), min(_SEEDS, n_grp))
+    seeds = lax.top_k(-box2.reshape(nt**3, n_grp), _SEEDS)[1].reshape(-1)
+    seed_tile = jnp.repeat(jnp.arange(nt**3, dtype=jnp.int32), _SEEDS)
     n_seed = -(-len(seeds) // steps.pair) * steps.pair
-    best = (jnp.full((nt**3, 64), jnp.inf, f32), jnp.zeros((nt**3, 64), jnp.int32))
+    # local group indices shifted to the mesh's: ties between chunks then go to the lower triangle, as in one pass
+    shift = base // _GROUP
+    best = (state.d2, state.ids)
     best = _scan_pairs(best, tile_pts, gtab, jnp.pad(seed_tile, (0, n_seed - len(seeds))),
-                       jnp.pad(seeds, (0, n_seed - len(seeds))), len(seeds), steps.pair)
+                       jnp.pad(seeds, (0, n_seed - len(seeds))), len(seeds), steps.pair, shift)
     bound = ((jnp.sqrt(best[0]) + slack) ** 2).reshape((nt,) * 3 + (_TILE,) * 3)
     need = _needed(ax4, gmin, gmax, bound).reshape(-1)
-    n_pairs = need.sum(dtype=jnp.int32)
-    pair = jnp.nonzero(need, size=pair_cap, fill_value=0)[0].astype(jnp.int32)
-    best = _scan_pairs(best, tile_pts, gtab, pair // n_grp, pair % n_grp, n_pairs, steps.pair)
-    face = best[1].reshape((nt,) * 3 + (_TILE,) * 3).transpose(0, 3, 1, 4, 2, 5)
-    face = face.reshape((nt * _TILE,) * 3)[:res, :res, :res].reshape(-1)
+    cap = -(-need.shape[0] // steps.pair) * steps.pair
+    pair = jnp.nonzero(need, size=cap, fill_value=0)[0].astype(jnp.int32)
+    best = _scan_pairs(best, tile_pts, gtab, pair // n_grp, pair % n_grp, need.sum(dtype=jnp.int32), steps.pair,
+                       shift)
+    face = _tiles_to_grid(best[1], res)
+    mine = (face >= base) & (face < base + FACE_CHUNK)
+    row = jnp.where(mine[:, None], rows[jnp.clip(face - base, 0, FACE_CHUNK - 1)], state.row)
+    return _Near(best[0], best[1], row)
 
-    ijk = jnp.stack(jnp.meshgrid(*[jnp.arange(res)] * 3, indexing="ij"), -1).reshape(-1, 3)
-    p = (ijk - (res - 1) / 2.0).astype(dtype) * voxel
-    off = lax.map(lambda x: _closest_offset(x[0], rows[x[1]]), (p, face), batch_size=steps.vox)
+
+@functools.partial(jax.jit, static_argnames=("res",))
+def _cap_chunk(d_cap, w_caps, caps, voxel, *, res):
+    """Distance to the caps so far and their winding number so far at every voxel, with one chunk of caps."""
+    p32 = _voxel_points(voxel, res, jnp.float32)
+    d, w = _cap_terms(list(p32.T), caps)
+    return jnp.minimum(d_cap, d), w_caps + w
+
+
+class _Components(NamedTuple):
+    label: Array  # (N,) component of each voxel (`_components`)
+    roots: Array  # (N,) the components' labels first, then N
+    n_comp: Array  # () how many components
+    rep: Array  # (N,) a voxel of each component (its farthest from the surface), in `roots` order
+    rep_pts: Array  # (N, 3) float32, those voxels' centres
+    size: Array  # (N,) voxels per component, in `roots` order
+    dist: Array  # (N,) unsigned distance to the mesh
+
+
+@functools.partial(jax.jit, static_argnames=("res", "steps"))
+def _sign_components(state: _Near, d_cap, voxel, *, res, steps) -> _Components:
+    """Step 2's components of the free space of mesh and caps, each with the voxel its winding number is read at.
+    The lists have room for one component per voxel: they cannot overflow, and only the components found are
+    summed (`_wind_chunk`)."""
+    dtype = state.row.dtype
+    n = res**3
+    p = _voxel_points(voxel, res, dtype)
+    off = jax.vmap(_closest_offset)(p, state.row)
     dist = jnp.sqrt(jnp.sum(off * off, axis=1))
-
-    # Step 2: sign.
-    p32 = p.astype(f32)
-    tri_cols = [t32[:, i // 3, i % 3][:, None] for i in range(9)]
-    dfree, w_caps = dist, jnp.zeros(n, f32)
-    if caps.shape[0]:
-        d_cap, w_caps = _cap_terms(list(p32.T), caps)
-        dfree = jnp.minimum(dist, d_cap.astype(dtype))
-        tri_cols = [jnp.concatenate([a, b[:, None]]) for a, b in zip(tri_cols, caps.reshape(-1, 9).T)]
+    dfree = jnp.minimum(dist, d_cap.astype(dtype))
     label = _components(dfree.reshape(res, res, res), voxel, res, _SLACK * voxel * res, steps.unroll)
-
     idx = jnp.arange(n, dtype=jnp.int32)
     far = jax.ops.segment_max(dfree, label, num_segments=n)
     rep = jax.ops.segment_min(jnp.where(dfree >= far[label], idx, n), label, num_segments=n)
     size = jax.ops.segment_sum(jnp.ones(n, jnp.int32), label, num_segments=n)
     is_root = label == idx
-    n_comp = is_root.sum(dtype=jnp.int32)
-    roots = jnp.nonzero(is_root, size=rep_cap, fill_value=n)[0]
-    rep_pts = p32[rep[jnp.minimum(roots, n - 1)]]
+    roots = jnp.nonzero(is_root, size=n, fill_value=n)[0]
+    at = jnp.minimum(roots, n - 1)
+    rep = jnp.minimum(rep[at], n - 1)
+    return _Components(label, roots, is_root.sum(dtype=jnp.int32), rep, p.astype(jnp.float32)[rep], size[at], dist)
+
+
+@functools.partial(jax.jit, static_argnames=("steps",))
+def _wind_chunk(acc, comp: _Components, tri, *, steps):
+    """The solid angles of one chunk of triangles added at the components' voxels (only the `n_comp` first)."""
+    tri_cols = [tri.astype(jnp.float32)[:, i // 3, i % 3][:, None] for i in range(9)]
 
     def wind_step(i, acc):
-        q = lax.dynamic_slice_in_dim(rep_pts, i * steps.rep, steps.rep)
-        w = _winding_sum(q, tri_cols, steps.tri) / (4 * jnp.pi)
+        q = lax.dynamic_slice_in_dim(comp.rep_pts, i * steps.rep, steps.rep)
+        w = lax.dynamic_slice_in_dim(acc, i * steps.rep, steps.rep) + _winding_sum(q, tri_cols, steps.tri)
         return lax.dynamic_update_slice_in_dim(acc, w, i * steps.rep, 0)
 
-    n_steps = (jnp.minimum(n_comp, rep_cap) + steps.rep - 1) // steps.rep
-    wind = lax.fori_loop(0, n_steps, wind_step, jnp.zeros(rep_cap, f32))
+    n_steps = (comp.n_comp + steps.rep - 1) // steps.rep
+    # the accumulator is padded to whole steps so that the last slice stays in bounds
+    pad = -acc.shape[0] % steps.rep
+    return lax.fori_loop(0, n_steps, wind_step, jnp.pad(acc, (0, pad)))[:acc.shape[0]]
+
+
+@functools.partial(jax.jit, static_argnames=("res",))
+def _grid(state: _Near, comp: _Components, wind, w_caps, voxel, orient, *, res):
+    """Steps 2 and 3 finished: the sign from each component's winding number, then the gradient channel."""
+    f32 = jnp.float32
+    dtype = state.row.dtype
+    n = res**3
+    # the capped mesh's winding number at each component's voxel: the mesh's solid angles and the caps' own
+    total = wind / (4 * jnp.pi) + w_caps[comp.rep]
     # A component of several voxels has an integer winding number (of the capped mesh); a lone voxel keeps its own.
-    wind = jnp.where(size[jnp.minimum(roots, n - 1)] > 1, jnp.round(wind), wind)
-    w = orient.astype(f32) * (jnp.zeros(n, f32).at[roots].set(wind, mode="drop")[label] - w_caps)
+    total = jnp.where(comp.size > 1, jnp.round(total), total)
+    w = orient.astype(f32) * (jnp.zeros(n, f32).at[comp.roots].set(total, mode="drop")[comp.label] - w_caps)
     sign = jnp.where(w > 0.5, -1.0, 1.0).astype(dtype)
 
-    # Step 3: gradient channel.
-    r = rows[face]
+    p = _voxel_points(voxel, res, dtype)
+    off = jax.vmap(_closest_offset)(p, state.row)
+    dist = comp.dist
+    r = state.row
     normal = jnp.cross(r[:, 3:6], r[:, 6:9])
     norm = jnp.sqrt(jnp.sum(normal * normal, axis=1, keepdims=True))
     normal = jnp.where(norm > 0, normal / jnp.where(norm > 0, norm, 1.0), jnp.array([[0.0, 0.0, 1.0]], dtype))
@@ -501,5 +550,4 @@ def _build(tri, rows, caps, voxel, orient, *, res, pair_cap, rep_cap, steps):
     on_surface = dist <= jnp.maximum(_ON_SURFACE, 4 * jnp.finfo(dtype).eps * voxel * res)
     grad = jnp.where(on_surface[:, None], orient * normal,
                      -sign[:, None] * off / jnp.where(on_surface, 1.0, dist)[:, None])
-    grid = jnp.concatenate([(sign * dist)[:, None], grad], axis=1).reshape(res, res, res, 4)
-    return grid, jnp.stack([n_pairs, n_comp])
+    return jnp.concatenate([(sign * dist)[:, None], grad], axis=1).reshape(res, res, res, 4)

@@ -141,6 +141,29 @@ def test_an_sdf_surface_matches_the_reference_sdf_path():
     np.testing.assert_array_equal(dev["force_closure"], ref["force_closure"])
 
 
+def test_the_same_surface_in_16_times_the_faces_gives_the_same_figures_without_compiling():
+    """The mug and its twice-subdivided copy (the same surface in 16 times the faces, many chunks): the same
+    figures, and the large mesh runs through the executables the small one compiled."""
+    from ffcgs_jax.synthesis import compile_clock
+
+    mesh = mesh_io.load_mesh("mug")
+    fine = mesh.subdivide().subdivide()
+    assert len(fine.faces) == 16 * len(mesh.faces) > 4 * dm.FACE_CHUNK
+    contacts, q = _grasps(mesh, N, seed=3)
+    centre, radius = metrics.default_centre_radius(mesh)
+    run = lambda m: jax.device_get(dm.evaluate(dm.mesh_table(m), jnp.asarray(contacts), jnp.asarray(q), LO, HI,  # noqa: E731
+                                               centre, radius, CFG))
+    coarse = run(mesh)
+    with compile_clock.compiling() as seconds:
+        same = run(fine)
+    assert seconds[0] == 0.0
+    np.testing.assert_allclose(same["contact_dist"], coarse["contact_dist"], atol=1e-12)
+    np.testing.assert_array_equal(same["n_contacts"], coarse["n_contacts"])
+    np.testing.assert_array_equal(same["force_closure"], coarse["force_closure"])
+    for k in ("normals", "E_g", "epsilon"):
+        np.testing.assert_allclose(same[k], coarse[k], atol=1e-9, err_msg=k)
+
+
 def test_batched_equals_one_at_a_time():
     mesh = mesh_io.load_mesh("box")  # the batch size and triangle bucket of the tests above: one more compile only
     contacts, q = _grasps(mesh, N, seed=4)

@@ -1,5 +1,5 @@
-"""Device SDF builder: the same grid as the host builder (the reference), exact under capacity retries, compiled once
-per problem size; `build_sdf`'s cache."""
+"""Device SDF builder: the same grid as the host builder (the reference), for meshes of one chunk and of many, compiled
+once for every mesh size; `build_sdf`'s cache."""
 
 import jax
 import jax.numpy as jnp
@@ -116,26 +116,25 @@ def test_matches_trimesh_on_a_watertight_mesh():
     np.testing.assert_allclose(np.abs(d), _distance_to_mesh(origin + voxel * idx, mesh.triangles), atol=DIST_TOL)
 
 
-def test_capacity_retry_keeps_the_result_exact(monkeypatch):
-    """20,480 faces need more (tile, group) pairs at 16^3 than the first guess holds: the host builds again with
-    room enough (once), and keeps that room for the next mesh of this size."""
-    monkeypatch.setattr(sdf_device, "_capacity", {})
+def test_a_mesh_of_several_chunks_matches_the_host_builder():
+    """20,480 faces stream through the device in 5 chunks: the nearest triangle found across chunks is the
+    nearest of all, and the signs come out as the host's."""
     mesh = trimesh.creation.icosphere(5, SPHERE_R)
-    before = sdf_device.retries()
+    assert len(mesh.faces) > 4 * sdf_device.FACE_CHUNK
     _compare_with_host(mesh, 16)
-    assert sdf_device.retries() == before + 1
-    origin, voxel = _frame(mesh, 16)
-    sdf_device.gradient_grid(np.asarray(mesh.vertices) * 1.01, np.asarray(mesh.faces), origin, voxel, 16)
-    assert sdf_device.retries() == before + 1
 
 
-def test_same_padded_size_reuses_the_compiled_build():
-    sphere = trimesh.creation.icosphere(3, SPHERE_R)  # 1,280 faces
-    ring = trimesh.creation.annulus(0.02, 0.04, 0.05, sections=200)  # 1,600 faces: the same bucket (2,048)
-    sdf.build_sdf(sphere, SDFConfig(res=32), cache=False)
-    compiled = sdf_device._build._cache_size()
-    grid = sdf.build_sdf(ring, SDFConfig(res=32), cache=False)
-    assert sdf_device._build._cache_size() == compiled
+def test_meshes_of_any_size_reuse_the_compiled_build():
+    """1,280 faces and 81,920 faces (20 chunks): the second mesh compiles nothing."""
+    from ffcgs_jax.synthesis import compile_clock
+
+    small = trimesh.creation.icosphere(3, SPHERE_R)
+    large = trimesh.creation.annulus(0.02, 0.04, 0.05, sections=20480)  # a ring: its hole must stay outside
+    assert len(large.faces) > 40 * len(small.faces)
+    sdf.build_sdf(small, SDFConfig(res=32), cache=False)
+    with compile_clock.compiling() as seconds:
+        grid = sdf.build_sdf(large, SDFConfig(res=32), cache=False)
+    assert seconds[0] == 0.0
     assert float(grid.grid[16, 16, 16, 0]) > 0.015  # in the ring's hole (radius 0.02), half a voxel off its axis
 
 

@@ -160,6 +160,21 @@ def test_deterministic_for_a_seed_and_the_executable_is_reused(svh, meshes, box_
     assert np.abs(other["wrist_pose"] - box_run["wrist_pose"]).max() > 1e-3
 
 
+def test_a_mesh_of_any_size_runs_through_the_compiled_executables(svh, meshes, box_run):
+    """A mesh of 15,000 faces after the 12-face box: no executable compiles (counted by JAX's own compile events),
+    compile_s says so, and the result is the same as for the same surface in few faces."""
+    from ffcgs_jax.synthesis import compile_clock
+
+    box = meshes["box"]
+    fine = box.subdivide_to_size(0.004)  # the same surface, many faces
+    assert len(fine.faces) > 10_000
+    with compile_clock.compiling() as seconds:
+        gs = synth(svh, fine, BOX, "fine box")
+    assert seconds[0] == 0.0 and float(gs["compile_s"]) < 0.01  # the cached executables looked up
+    np.testing.assert_allclose(gs["wrist_pose"], box_run["wrist_pose"], atol=1e-6)
+    np.testing.assert_array_equal(gs["valid"], box_run["valid"])
+
+
 def test_paper_preset_keeps_the_sampled_wrist_poses(svh, meshes, ball_paper_run):
     grid = sdf_mod.build_sdf(meshes["ball"], PAPER.sdf)
     sample = samplers.make_sampler("random", svh, PAPER.sampling, PAPER.filters)
