@@ -1,25 +1,19 @@
 """bench/depth.py: its bad-input errors, its figures from a fabricated report, its RESULTS block, and tiny runs."""
 
-import importlib.util
 import json
 import subprocess
 import sys
 
 import pytest
 
-from paths import REPO
+from paths import REPO, bench_script
 
 SCRIPT = REPO / "bench" / "depth.py"
 
 
 @pytest.fixture(scope="module")
 def depth():
-    if str(SCRIPT.parent) not in sys.path:  # as when the script runs: its sibling scripts import by name
-        sys.path.insert(0, str(SCRIPT.parent))
-    spec = importlib.util.spec_from_file_location("bench_depth", SCRIPT)
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+    return bench_script("depth")
 
 
 def _rec(obj, condition, tested=(), ls=(), sd=(), valid=2, surface=None, error=None):

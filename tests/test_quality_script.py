@@ -1,25 +1,19 @@
 """bench/quality.py without synthesis: its bad-input errors, its figures from a fabricated report, and its block
 in a RESULTS file."""
 
-import importlib.util
 import subprocess
 import sys
 
 import pytest
 
-from paths import REPO
+from paths import REPO, bench_script
 
 SCRIPT = REPO / "bench" / "quality.py"
 
 
 @pytest.fixture(scope="module")
 def quality():
-    if str(SCRIPT.parent) not in sys.path:  # as when the script runs: its sibling scripts import by name
-        sys.path.insert(0, str(SCRIPT.parent))
-    spec = importlib.util.spec_from_file_location("bench_quality", SCRIPT)
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+    return bench_script("quality")
 
 
 def _record(obj, valid, E, order, tested, physics, force_closure, contact_dist=None, warm=True):
