@@ -22,6 +22,7 @@ from scipy import ndimage
 from scipy.sparse import coo_matrix, csgraph
 from scipy.spatial import cKDTree
 
+from ffcgs_jax.geometry.triangles import closest_offset, orientation, solid_angle_one, tri_table
 from ffcgs_jax.types import Float, Int
 
 _BLOCK = 4  # voxels per block edge in the candidate pruning of step 1
@@ -62,7 +63,7 @@ def signed_distance_grid(
     normals = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
     norm = np.linalg.norm(normals, axis=1, keepdims=True)
     normals = np.where(norm > 0, normals / np.where(norm > 0, norm, 1.0), np.array([0.0, 0.0, 1.0]))
-    normals *= _orientation(tri)
+    normals *= orientation(tri)
     sign = np.where(inside, -1.0, 1.0)
     diff = points - closest
     on_surface = dist <= _ON_SURFACE
@@ -77,60 +78,11 @@ def _voxel_centres(origin: np.ndarray, voxel: float, res: int) -> np.ndarray:
     return np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1)
 
 
-def _orientation(tri: np.ndarray) -> float:
-    """+1 if the faces wind outward (positive signed volume), -1 if the mesh is inside out."""
-    c = tri.reshape(-1, 3).mean(0)
-    t = tri - c
-    vol = np.einsum("ij,ij->i", t[:, 0], np.cross(t[:, 1], t[:, 2])).sum()
-    return 1.0 if vol >= 0 else -1.0
-
-
 # --- step 1: exact unsigned distance -----------------------------------------------------------------------------
 
 
-def _tri_table(tri: np.ndarray, dtype=np.float32) -> np.ndarray:
-    """(F_pad, 12) rows a, b - a, c - a, |ab|^2, ab.ac, |ac|^2, padded to a multiple of _TRI_CHUNK with degenerate
-    triangles 1 km away (never nearest, zero solid angle)."""
-    n_pad = -len(tri) % _TRI_CHUNK
-    t = np.concatenate([tri, np.full((n_pad, 3, 3), 1e3)]) if n_pad else tri
-    a, ab, ac = t[:, 0], t[:, 1] - t[:, 0], t[:, 2] - t[:, 0]
-    dots = np.stack([(ab * ab).sum(1), (ab * ac).sum(1), (ac * ac).sum(1)], axis=1)
-    return np.concatenate([a, ab, ac, dots], axis=1).astype(dtype)
-
-
-def _closest_offset(p, row):
-    """(closest point - p) on one triangle `row` (12,) for one point `p` (3,); Ericson's Voronoi-region test."""
-    a, ab, ac = row[0:3], row[3:6], row[6:9]
-    d00, d01, d11 = row[9], row[10], row[11]
-    ap = p - a
-    d1, d2 = ab @ ap, ac @ ap
-    d3, d4, d5, d6 = d1 - d00, d2 - d01, d1 - d01, d2 - d11
-    vc, vb, va = d1 * d4 - d3 * d2, d5 * d2 - d1 * d6, d3 * d6 - d5 * d4
-
-    def div(n, d):
-        ok = d != 0
-        return jnp.where(ok, n / jnp.where(ok, d, 1.0), 0.0)
-
-    e43, e56 = d4 - d3, d5 - d6
-    at_a = (d1 <= 0) & (d2 <= 0)
-    at_b = (d3 >= 0) & (d4 <= d3)
-    on_ab = (vc <= 0) & (d1 >= 0) & (d3 <= 0)
-    at_c = (d6 >= 0) & (d5 <= d6)
-    on_ac = (vb <= 0) & (d2 >= 0) & (d6 <= 0)
-    on_bc = (va <= 0) & (e43 >= 0) & (e56 >= 0)
-    w_bc = div(e43, e43 + e56)
-    den = va + vb + vc
-    v_in, w_in = div(vb, den), div(vc, den)
-    # Barycentric weights (v on ab, w on ac) of the closest point, region by region.
-    v = jnp.where(on_bc, 1 - w_bc, v_in)
-    v = jnp.where(at_a | at_c | on_ac, 0.0, jnp.where(at_b, 1.0, jnp.where(on_ab, div(d1, d1 - d3), v)))
-    w = jnp.where(on_bc, w_bc, w_in)
-    w = jnp.where(at_a | at_b | on_ab, 0.0, jnp.where(at_c, 1.0, jnp.where(on_ac, div(d2, d2 - d6), w)))
-    return v * ab + w * ac - ap
-
-
 def _dist2_one(p, row):
-    r = _closest_offset(p, row)
+    r = closest_offset(p, row)
     return r @ r
 
 
@@ -152,7 +104,7 @@ def _group_min(corners, offs, rows, tri_id, seg):
 _dist2_dense = jax.jit(jax.vmap(jax.vmap(_dist2_one, (None, 0)), (0, None)))  # (P,3), (T,12) -> (P,T)
 _dist2_groups = jax.jit(jax.vmap(_dist2_group, (0, None, 0)))  # (M,3), (V,3), (M,12) -> (M,V)
 _group_min = jax.jit(_group_min)  # (M,3), (V,3), (M,12), (M,), (M,) -> (M,V), (M,V)
-_closest_gather = jax.jit(lambda p, table, face: p + jax.vmap(_closest_offset)(p, table[face]))  # float64
+_closest_gather = jax.jit(lambda p, table, face: p + jax.vmap(closest_offset)(p, table[face]))  # float64
 
 
 def _exact_distance(tri: np.ndarray, origin: np.ndarray, voxel: float, res: int):
@@ -167,7 +119,7 @@ def _exact_distance(tri: np.ndarray, origin: np.ndarray, voxel: float, res: int)
     n_sb = -(-res // n_sub)
     rp = n_sb * n_sub
     centre = origin + voxel * (rp - 1) / 2.0  # work relative to the grid centre: float32 keeps ~1e-8 m
-    table = _tri_table(tri - centre)
+    table = tri_table(tri - centre, multiple=_TRI_CHUNK)
     n_tri = len(tri)
     slack = 1e-6 * voxel * rp  # above float32 rounding
     cube = np.stack(np.meshgrid(*[np.arange(_BLOCK)] * 3, indexing="ij"), -1).reshape(-1, 3)  # (64, 3)
@@ -277,7 +229,7 @@ def _closest_float64(points: np.ndarray, tri: np.ndarray, face_id: np.ndarray) -
     out = np.empty_like(points)
     step = 1 << 16
     with jax.enable_x64(True):
-        table = jnp.asarray(_tri_table(tri, np.float64))
+        table = jnp.asarray(tri_table(tri, np.float64))
         for s in range(0, len(points), step):
             n = len(points[s : s + step])
             p = _pad_rows(points[s : s + step], step)
@@ -289,16 +241,7 @@ def _closest_float64(points: np.ndarray, tri: np.ndarray, face_id: np.ndarray) -
 # --- step 2: sign from the generalised winding number ------------------------------------------------------------
 
 
-def _solid_angle_one(p, t):
-    """Signed solid angle of triangle t (3, 3) seen from p (3,) (Van Oosterom & Strackee)."""
-    a, b, c = t[0] - p, t[1] - p, t[2] - p
-    la, lb, lc = jnp.linalg.norm(a), jnp.linalg.norm(b), jnp.linalg.norm(c)
-    num = a @ jnp.cross(b, c)
-    den = la * lb * lc + (a @ b) * lc + (a @ c) * lb + (b @ c) * la
-    return 2.0 * jnp.arctan2(num, den)
-
-
-_solid_angle_sum = jax.jit(jax.vmap(lambda p, ts: jax.vmap(_solid_angle_one, (None, 0))(p, ts).sum(), (0, None)))
+_solid_angle_sum = jax.jit(jax.vmap(lambda p, ts: jax.vmap(solid_angle_one, (None, 0))(p, ts).sum(), (0, None)))
 
 
 def _winding(points: np.ndarray, tri_pad: np.ndarray, orient: float) -> np.ndarray:
@@ -326,7 +269,7 @@ def _inside(tri, faces, dist, origin, voxel, res) -> np.ndarray:
     centre = origin + voxel * (res - 1) / 2.0
     n_pad = -len(tri) % _TRI_CHUNK
     tri_pad = np.concatenate([tri - centre, np.full((n_pad, 3, 3), 1e3)]).astype(np.float32)
-    orient = _orientation(tri)
+    orient = orientation(tri)
     points = _voxel_centres(origin, voxel, res).reshape(-1, 3) - centre
     wind = np.full(len(points), np.nan)
 

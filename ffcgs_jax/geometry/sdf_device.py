@@ -1,20 +1,23 @@
-"""Device build of a Gradient-SDF grid: exact signed distances and their gradients in one jitted function.
+"""Device build of a Gradient-SDF grid: exact signed distances and their gradients, streamed over the triangles.
 
 The contract and the definitions are the host builder's (`sdf_build.signed_distance_grid`: exact distance, sign
-from the generalised winding number, gradient channel); here the build is XLA code over fixed, padded shapes, the
-same on a GPU and on the CPU, and a new mesh of a similar size reuses the compiled executable.
+from the generalised winding number, gradient channel); here the build is XLA code over fixed shapes, the same on a
+GPU and on the CPU. The triangles pass through the device in chunks of `FACE_CHUNK`, every chunk through the same
+compiled steps (`_near_chunk`, `_wind_chunk`; caps through `_cap_chunk`), so one set of executables per grid
+resolution serves meshes of any size, 100 faces or 200,000, and the work grows linearly with the face count.
 
 Host side (`_pack`, NumPy, O(faces)): the triangles in Morton order relative to the grid centre (so float32 keeps
-~1e-8 m), cut into groups of _GROUP and padded to a size bucket; for an open mesh, caps over its holes (below).
+~1e-8 m; each chunk is then a compact region), cut into groups of _GROUP and padded to whole chunks; for an open
+mesh, caps over its holes (below).
 
-On the device (`_build`):
+On the device:
 1. Distance, exact, by candidate pruning over (tile, group) pairs. A tile is 4^3 voxels (64: the vector lanes on a
    CPU), a group 16 consecutive triangles with their bounding box. Each voxel first gets an upper bound u(v), its
    distance to the 4 groups nearest its tile's box; a pair (tile, group) is kept when the group's box lies within
    u(v) of some voxel v of the tile. The group of a voxel's nearest triangle is no farther than that triangle, so
    it is kept: the kept pairs, compacted into a list of fixed capacity and scanned in chunks, give every voxel its
    exact nearest triangle (float32 search). Its closest point is recomputed in the default float dtype with
-   `sdf_build._closest_offset`.
+   `closest_offset`.
 2. Sign: inside where the generalised winding number w > 0.5. Neighbouring voxels u, v (26-neighbourhood) are
    joined when d(u) + d(v) > |u - v|: no surface crosses the segment uv. Components come from min-label propagation
    with hooking and pointer jumping in a `lax.while_loop` (about 5 rounds); w is evaluated at one voxel of each
@@ -27,10 +30,9 @@ On the device (`_build`):
    triangles), evaluated at every voxel: exact voxel by voxel, where the host builder sets voxels near holes aside.
 3. Gradient channel: sign * (p - closest) / |p - closest|, or the face normal where p lies on the surface.
 
-Capacities: the pair list and the component list have fixed sizes (static arguments, part of the compile key).
-`_build` also returns how many entries each needed; when one overflowed, the host builds again with sizes that fit
-(one retry, recompiling; `retries()` counts them) and keeps those sizes for that problem size, so a result is never
-silently inexact. Only the chunks of a list that hold entries run, so generous sizes cost memory, not time.
+Capacities: a chunk's pair list has room for all of its (tile, group) pairs and the component list for one component
+per voxel, so neither can overflow and no size depends on the mesh. Only the steps of a list that hold entries run,
+so the room costs memory, not time.
 
 Cost on the 2-core CPU, 32^3, a 3,000-face YCB mesh: ~12-18 k pairs (~12-18 M point-triangle distances, 1 ns
 each), a few hundred winding numbers over all faces, 4-5 propagation rounds: ~35 ms the whole call. Open meshes
@@ -46,7 +48,7 @@ import numpy as np
 from jax import lax
 from scipy.sparse import coo_matrix, csgraph
 
-from ffcgs_jax.geometry.sdf_build import _closest_offset, _orientation, _tri_table
+from ffcgs_jax.geometry.triangles import closest_offset, dist2, orientation, search_table, solid_angles, tri_table
 from ffcgs_jax.types import Array, Float, Int
 
 _TILE = 4  # voxels per tile edge: a tile's 64 voxels share one candidate list
@@ -135,9 +137,9 @@ def _steps() -> Steps:
 
 class _Packed(NamedTuple):
     tri: np.ndarray  # (F_pad, 3, 3) Morton-ordered triangles relative to the grid centre, default dtype
-    rows: np.ndarray  # (F_pad, 12) `sdf_build._tri_table` rows of tri, default dtype
+    rows: np.ndarray  # (F_pad, 12) `tri_table` rows of tri, default dtype
     caps: np.ndarray  # (C_pad, 3, 3) cap triangles relative to the grid centre, float32; none for a closed mesh
-    orient: float  # +1, or -1 for an inside-out mesh (`sdf_build._orientation`)
+    orient: float  # +1, or -1 for an inside-out mesh (`orientation`)
 
 
 def _pack(verts, faces, origin, voxel, res, dtype) -> _Packed:
@@ -152,7 +154,7 @@ def _pack(verts, faces, origin, voxel, res, dtype) -> _Packed:
     t = np.concatenate([t, np.repeat(point, n_grouped - len(t), axis=0), far])
     caps = _hole_caps(verts, faces) - centre
     caps = np.concatenate([caps, np.full((-len(caps) % CAP_CHUNK, 3, 3), _FAR)])
-    return _Packed(t.astype(dtype), _tri_table(t, dtype), caps.astype(np.float32), _orientation(tri))
+    return _Packed(t.astype(dtype), tri_table(t, dtype), caps.astype(np.float32), orientation(tri))
 
 
 def _morton_order(c: np.ndarray) -> np.ndarray:
@@ -202,58 +204,6 @@ def _border_edges(faces: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]:
 # --- device kernels (float32 search, structure-of-arrays: the voxels run along the vector lanes) -------------------
 
 
-def _search_table(t):
-    """(F, 15) float32 rows a, b - a, c - a, |ab|^2, ab.ac, |ac|^2 and the reciprocals of |ab|^2, |ac|^2, |bc|^2:
-    `sdf_build._tri_table` plus the edge divisions of Ericson's test, done once per triangle."""
-    a, ab, ac = t[:, 0], t[:, 1] - t[:, 0], t[:, 2] - t[:, 0]
-    d00, d01, d11 = (ab * ab).sum(1), (ab * ac).sum(1), (ac * ac).sum(1)
-    bc = ((ac - ab) ** 2).sum(1)
-
-    def inv(x):
-        return jnp.where(x != 0, 1.0 / jnp.where(x != 0, x, 1.0), 0.0)
-
-    return jnp.concatenate([a, ab, ac, jnp.stack([d00, d01, d11, inv(d00), inv(d11), inv(bc)], 1)], 1)
-
-
-def _dist2(px, py, pz, c):
-    """Squared distance from points (px, py, pz) to triangles given as the 15 broadcastable columns c of
-    `_search_table`: `sdf_build._closest_offset` in structure-of-arrays form (the same Voronoi-region tests and
-    precedence), which XLA vectorises over whole arrays."""
-    ax, ay, az, bx, by, bz, cx, cy, cz, d00, d01, d11, i00, i11, ibc = c
-    apx, apy, apz = px - ax, py - ay, pz - az
-    d1 = bx * apx + by * apy + bz * apz
-    d2 = cx * apx + cy * apy + cz * apz
-    d3, d4, d5, d6 = d1 - d00, d2 - d01, d1 - d01, d2 - d11
-    vc, vb, va = d1 * d4 - d3 * d2, d5 * d2 - d1 * d6, d3 * d6 - d5 * d4
-    e43, e56 = d4 - d3, d5 - d6
-    at_a = (d1 <= 0) & (d2 <= 0)
-    at_b = (d3 >= 0) & (d4 <= d3)
-    on_ab = (vc <= 0) & (d1 >= 0) & (d3 <= 0)
-    at_c = (d6 >= 0) & (d5 <= d6)
-    on_ac = (vb <= 0) & (d2 >= 0) & (d6 <= 0)
-    on_bc = (va <= 0) & (e43 >= 0) & (e56 >= 0)
-    den = va + vb + vc
-    inv_den = jnp.where(den != 0, 1.0 / jnp.where(den != 0, den, 1.0), 0.0)
-    w_bc = e43 * ibc
-    v = jnp.where(on_bc, 1 - w_bc, vb * inv_den)
-    v = jnp.where(at_a | at_c | on_ac, 0.0, jnp.where(at_b, 1.0, jnp.where(on_ab, d1 * i00, v)))
-    w = jnp.where(on_bc, w_bc, vc * inv_den)
-    w = jnp.where(at_a | at_b | on_ab, 0.0, jnp.where(at_c, 1.0, jnp.where(on_ac, d2 * i11, w)))
-    rx, ry, rz = v * bx + w * cx - apx, v * by + w * cy - apy, v * bz + w * cz - apz
-    return rx * rx + ry * ry + rz * rz
-
-
-def _solid_angle(px, py, pz, t):
-    """Signed solid angle of triangles (9 broadcastable columns a, b, c) seen from points: `sdf_build.
-    _solid_angle_one` (Van Oosterom & Strackee) in structure-of-arrays form."""
-    ax, ay, az, bx, by, bz, cx, cy, cz = t
-    ax, ay, az, bx, by, bz, cx, cy, cz = ax - px, ay - py, az - pz, bx - px, by - py, bz - pz, cx - px, cy - py, cz - pz
-    la, lb, lc = (jnp.sqrt(x * x + y * y + z * z) for x, y, z in ((ax, ay, az), (bx, by, bz), (cx, cy, cz)))
-    num = ax * (by * cz - bz * cy) + ay * (bz * cx - bx * cz) + az * (bx * cy - by * cx)
-    ab, ac, bc = ax * bx + ay * by + az * bz, ax * cx + ay * cy + az * cz, bx * cx + by * cy + bz * cz
-    return 2.0 * jnp.arctan2(num, la * lb * lc + ab * lc + ac * lb + bc * la)
-
-
 def _tree_min(x, axis):
     """Least value along `axis` (a power of two long) by halving: elementwise minima, which XLA's CPU backend fuses
     and vectorises where a reduction over a fused expression runs scalar."""
@@ -268,7 +218,7 @@ def _pair_min(tile_pts, gtab, tile, grp, shift):
     triangle's index in the mesh (the chunk's groups start at group `shift`): (K, 64) each."""
     pts = tile_pts[tile]  # (K, 3, 64): gathered from a table, so the distance loop reads plain arrays
     rows = gtab[grp]  # (K, 15, G)
-    d2 = _dist2(pts[:, 0:1], pts[:, 1:2], pts[:, 2:3], [rows[:, i, :, None] for i in range(15)])  # (K, G, 64)
+    d2 = dist2(pts[:, 0:1], pts[:, 1:2], pts[:, 2:3], [rows[:, i, :, None] for i in range(15)])  # (K, G, 64)
     low = _tree_min(d2, 1)
     arg = jnp.min(jnp.where(d2 <= low[:, None], jnp.arange(_GROUP, dtype=jnp.int32)[None, :, None], _GROUP), axis=1)
     return low, (grp[:, None] + shift) * _GROUP + arg
@@ -365,12 +315,12 @@ def _winding_sum(pts, tri_cols, chunk):
     (F a multiple of it), accumulated elementwise over chunks of triangles: on CPUs a fused sum over all F ran 2x
     slower."""
     if not chunk:
-        return _solid_angle(pts[None, :, 0], pts[None, :, 1], pts[None, :, 2], tri_cols).sum(0)
+        return solid_angles(pts[None, :, 0], pts[None, :, 1], pts[None, :, 2], tri_cols).sum(0)
     cols = jnp.concatenate(tri_cols, 1).reshape(-1, chunk, 9)
 
     def add(acc, c):
         q = pts[None, :, 0], pts[None, :, 1], pts[None, :, 2]
-        return acc + _solid_angle(*q, [c[:, i:i + 1] for i in range(9)]), None
+        return acc + solid_angles(*q, [c[:, i:i + 1] for i in range(9)]), None
 
     return lax.scan(add, jnp.zeros((chunk, pts.shape[0]), jnp.float32), cols)[0].sum(0)
 
@@ -379,13 +329,13 @@ def _cap_terms(pts, caps):
     """Distance to the caps and their raw winding number (solid angles / 4 pi) at points x, y, z (N,): (N,) each. One
     pass over the caps, 8 a step, each against all points as flat vectors: what XLA's CPU backend vectorises best
     (a loop over chunks of points, all caps at once, ran 8x slower)."""
-    rows = jnp.concatenate([_search_table(caps), caps.reshape(-1, 9)], 1).reshape(-1, 8, 24)
+    rows = jnp.concatenate([search_table(caps), caps.reshape(-1, 9)], 1).reshape(-1, 8, 24)
 
     def step(acc, r):
         d2, w = acc
         for j in range(8):
-            d2 = jnp.minimum(d2, _dist2(*pts, [r[j, i] for i in range(15)]))
-            w = w + _solid_angle(*pts, [r[j, i] for i in range(15, 24)])
+            d2 = jnp.minimum(d2, dist2(*pts, [r[j, i] for i in range(15)]))
+            w = w + solid_angles(*pts, [r[j, i] for i in range(15, 24)])
         return (d2, w), None
 
     n = pts[0].shape[0]
@@ -395,7 +345,7 @@ def _cap_terms(pts, caps):
 
 class _Near(NamedTuple):
     """The nearest triangle found so far per voxel: squared float32 distance and global triangle index in tile
-    layout (T, 64), and that triangle's `sdf_build._tri_table` row per voxel in grid order (N, 12)."""
+    layout (T, 64), and that triangle's `tri_table` row per voxel in grid order (N, 12)."""
 
     d2: Array
     ids: Array
@@ -438,7 +388,7 @@ def _near_chunk(state: _Near, tri, rows, base, voxel, *, res, steps) -> _Near:
     nt = -(-res // _TILE)
     slack = _SLACK * voxel.astype(f32) * res
     t32 = tri.astype(f32)
-    gtab = _search_table(t32).reshape(n_grp, _GROUP, 15).transpose(0, 2, 1)  # (NG, 15, G)
+    gtab = search_table(t32).reshape(n_grp, _GROUP, 15).transpose(0, 2, 1)  # (NG, 15, G)
     gv = t32.reshape(n_grp, _GROUP * 3, 3)
     gmin, gmax = gv.min(1), gv.max(1)
     ax4 = _tile_axes(voxel, res)
@@ -495,7 +445,7 @@ def _sign_components(state: _Near, d_cap, voxel, *, res, steps) -> _Components:
     dtype = state.row.dtype
     n = res**3
     p = _voxel_points(voxel, res, dtype)
-    off = jax.vmap(_closest_offset)(p, state.row)
+    off = jax.vmap(closest_offset)(p, state.row)
     dist = jnp.sqrt(jnp.sum(off * off, axis=1))
     dfree = jnp.minimum(dist, d_cap.astype(dtype))
     label = _components(dfree.reshape(res, res, res), voxel, res, _SLACK * voxel * res, steps.unroll)
@@ -540,7 +490,7 @@ def _grid(state: _Near, comp: _Components, wind, w_caps, voxel, orient, *, res):
     sign = jnp.where(w > 0.5, -1.0, 1.0).astype(dtype)
 
     p = _voxel_points(voxel, res, dtype)
-    off = jax.vmap(_closest_offset)(p, state.row)
+    off = jax.vmap(closest_offset)(p, state.row)
     dist = comp.dist
     r = state.row
     normal = jnp.cross(r[:, 3:6], r[:, 6:9])

@@ -8,7 +8,7 @@ import pytest
 import trimesh
 
 from ffcgs_jax.errors import FfcgsError
-from ffcgs_jax.geometry import sdf, sdf_build, sdf_device
+from ffcgs_jax.geometry import sdf, sdf_build, sdf_device, triangles
 from ffcgs_jax.geometry.config import SDFConfig
 
 from paths import SHARED
@@ -28,13 +28,13 @@ def _frame(mesh: trimesh.Trimesh, res: int):
 
 @jax.jit
 def _nearest(points, rows):
-    return jax.vmap(lambda q: jnp.min(jax.vmap(lambda r: jnp.linalg.norm(sdf_build._closest_offset(q, r)))(rows)))(
+    return jax.vmap(lambda q: jnp.min(jax.vmap(lambda r: jnp.linalg.norm(triangles.closest_offset(q, r)))(rows)))(
         points)
 
 
 def _distance_to_mesh(points: np.ndarray, tri: np.ndarray) -> np.ndarray:
     """Float64 brute force: distance from each point to the nearest of all triangles."""
-    return np.asarray(_nearest(jnp.asarray(points), jnp.asarray(sdf_build._tri_table(tri, np.float64))))
+    return np.asarray(_nearest(jnp.asarray(points), jnp.asarray(triangles.tri_table(tri, np.float64))))
 
 
 def _compare_with_host(mesh: trimesh.Trimesh, res: int) -> tuple[np.ndarray, np.ndarray]:
