@@ -9,6 +9,7 @@ The public API is the handful of names below; each is imported on first use, so 
     hand, mesh = fj.load_hand("svh"), fj.load_mesh("mug")
     gs = fj.synthesize(hand, mesh, fj.GraspConfig(n=32))
     gs = fj.validate(hand, mesh, gs)   # physics-checked: the grasps that hold first (gs.order())
+    for r in fj.synthesize_many(hand, ["mug", "meshes/"]): ...   # many objects, the next loading meanwhile
 """
 
 import importlib
@@ -23,6 +24,7 @@ _API = {
     "build_sdf": ("ffcgs_jax.geometry.sdf", "build_sdf"),
     "from_depth": ("ffcgs_jax.geometry.depth_object", "from_depth"),
     "synthesize": ("ffcgs_jax.synthesis.grasp", "synthesize"),
+    "synthesize_many": ("ffcgs_jax.synthesis.many", "synthesize_many"),
     "evaluate_physics": ("ffcgs_jax.physics.runner", "evaluate"),
     "validate": ("ffcgs_jax.physics.validate", "validate"),
     "GraspSet": ("ffcgs_jax.synthesis.grasp", "GraspSet"),
@@ -49,6 +51,7 @@ if TYPE_CHECKING:  # what the lazy names are, for type checkers and editors
     from ffcgs_jax.physics.validate import validate  # noqa: F401
     from ffcgs_jax.synthesis.config import EnergyConfig, GraspConfig, OptimConfig  # noqa: F401
     from ffcgs_jax.synthesis.grasp import GraspSet, synthesize  # noqa: F401
+    from ffcgs_jax.synthesis.many import synthesize_many  # noqa: F401
 
 
 def __getattr__(name: str):

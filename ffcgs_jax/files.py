@@ -19,6 +19,7 @@ import codecs
 import contextlib
 import json
 import os
+import re
 import shutil
 from collections.abc import Callable, Iterator
 from pathlib import Path
@@ -206,40 +207,101 @@ def manifest_files(folder: str | Path) -> set[str] | None:
     """The files (paths relative to `folder`, '/'-separated) that the run which wrote `folder` names in its
     manifest, or None for a folder without one (written by hand or by another program). Readers of a folder
     take only these files when there is a manifest."""
+    m = read_manifest(folder)
+    return None if m is None else set(m["files"])
+
+
+def read_manifest(folder: str | Path) -> dict | None:
+    """The manifest of `folder` ({"written_by": command, "files": names}), or None for a folder without one;
+    FfcgsError for one that cannot be read."""
     path = Path(folder) / MANIFEST
     if not path.is_file():
         return None
     try:
-        names = json.loads(path.read_text())["files"]
+        m = json.loads(path.read_text())
+        names, by = m["files"], m.get("written_by", "")
     except (OSError, ValueError, KeyError, TypeError):
         raise FfcgsError(f"{path} is not a readable manifest (delete it to read the folder as it is)") from None
     if not isinstance(names, list) or not all(isinstance(n, str) for n in names):
         raise FfcgsError(f"{path} is not a readable manifest: 'files' must be a list of names")
-    return set(names)
+    return {"written_by": str(by), "files": names}
+
+
+def add_to_manifest(folder: str | Path, name: str, written_by: str) -> None:
+    """Name file `name` in the manifest of `folder`, a folder that a command fills one file at a time over one run
+    or several (`ffcgs grasp` of many objects), before the file is written: a crash between the two leaves a name
+    without a file, which a rerun writes, never a file that the manifest does not name (which
+    `check_folder_output` would refuse as someone else's). FfcgsError when another command wrote the folder."""
+    folder = Path(folder)
+    m = manifest_by(folder, written_by) or {"written_by": written_by, "files": []}
+    if name not in m["files"]:
+        write_text(folder / MANIFEST, json.dumps({"written_by": written_by, "files": sorted({*m["files"], name})},
+                                                 indent=1) + "\n")
+
+
+def manifest_by(folder: str | Path, written_by: str) -> dict | None:
+    """The manifest of `folder` (`read_manifest`), or None for a folder without one; FfcgsError when a command other
+    than `written_by` wrote it (a folder of depth frames is no place for grasp files)."""
+    m = read_manifest(folder)
+    if m is not None and m["written_by"] != written_by:
+        raise FfcgsError(f"{folder} was written by {m['written_by'] or 'another command'}, not {written_by}; "
+                         "choose another folder")
+    return m
+
+
+_LEFT_BEHIND = re.compile(r"\..+\.(\d+)\.(tmp|old)(\.[^.]*)?")  # `_temporary`'s and `_swap_folder`'s names
+
+
+def _left_behind(path: Path) -> bool:
+    """Whether `path` is a temporary of ours that a process killed without a chance to clean up (SIGKILL, power
+    loss) left: named like one, by a process that no longer runs."""
+    m = _LEFT_BEHIND.fullmatch(path.name)
+    if m is None or int(m[1]) == os.getpid():
+        return False
+    try:
+        os.kill(int(m[1]), 0)
+    except ProcessLookupError:
+        return True
+    except OSError:  # alive, another user's
+        return False
+    return False
+
+
+def remove_left_behind(folder: str | Path) -> int:
+    """Remove the temporaries that killed runs left in `folder` (`_left_behind`); how many."""
+    stale = [p for p in Path(folder).iterdir() if _left_behind(p)] if Path(folder).is_dir() else []
+    for p in stale:
+        _remove(p)
+    return len(stale)
 
 
 def _listing(folder: Path) -> list[str]:
     return sorted(p.relative_to(folder).as_posix() for p in folder.rglob("*") if not p.is_dir())
 
 
-def check_folder_output(path: str | Path, what: str = "output folder", overwrite: bool = False) -> Path:
+def check_folder_output(path: str | Path, what: str = "output folder", overwrite: bool = False,
+                        whole: bool = True) -> Path:
     """`path` as a folder a command may write whole, checked before the work: not a file, its parent writable, and
     either missing, empty, or written by an earlier run of ours with nothing added since (its manifest names every
-    file in it). `overwrite` allows replacing any folder whole. FfcgsError naming `what` otherwise."""
+    file in it; temporaries that killed runs left do not count, `_left_behind`). `overwrite` allows replacing any
+    folder whole. `whole` False: a folder the command fills one file at a time rather than replaces
+    (`add_to_manifest`), which earlier runs may have begun. FfcgsError naming `what` otherwise."""
     path = Path(path).expanduser()
     if path.exists() and not path.is_dir():
         raise FfcgsError(f"{what} {path} is a file, not a folder")
     here = Path.cwd().resolve()
     if resolved(path) == here or resolved(path) in here.parents:
-        raise FfcgsError(f"{what} {path} is the current folder or holds it, and the folder is replaced whole; "
-                         "name a subfolder")
+        raise FfcgsError(f"{what} {path} is the current folder or holds it"
+                         f"{', and the folder is replaced whole' if whole else ''}; name a subfolder")
     check_output(path.parent / f".{path.name or 'folder'}.probe", what)  # parents created, write permission
     if path.is_dir() and not overwrite:
         ours = manifest_files(path)
-        foreign = [n for n in _listing(path) if n != MANIFEST and (ours is None or n not in ours)]
+        foreign = [n for n in _listing(path) if n != MANIFEST and (ours is None or n not in ours)
+                   and not _left_behind(path / n)]
         if foreign:
+            fix = "pass --overwrite to replace it whole" if whole else "one that earlier runs of this command filled"
             raise FfcgsError(f"{what} {path} holds {len(foreign)} file(s) that this command did not write (e.g. "
-                             f"{foreign[0]}); choose a new or empty folder, or pass --overwrite to replace it whole")
+                             f"{foreign[0]}); choose a new or empty folder, or {fix}")
     return path
 
 

@@ -8,7 +8,8 @@ Each `ffcgs` command builds a `Plan` from its options (`cli.commands.PLANS`); `P
 - two outputs that resolve to one file, or an output inside a folder output (which is replaced whole);
 - an extension that does not match what is written (`--png x.jpg`, `--out grasps.txt`);
 - an output that cannot be written (`files.check_output`), and a folder output holding files that no run of this
-  command wrote, unless `--overwrite` (`files.check_folder_output`).
+  command wrote, unless `--overwrite` (`files.check_folder_output`); a "files" output is such a folder that the
+  command fills a file at a time, keeping what earlier runs wrote there.
 `Plan.outputs_together()` then makes the command's outputs land together (`files.outputs_together`).
 """
 
@@ -30,6 +31,7 @@ FORMATS: dict[str, tuple[str, tuple[str, ...]]] = {
     "video": ("a GIF or MP4 video", (".gif", ".mp4")),
     "mesh": ("a mesh", (".ply", ".obj", ".stl")),
     "folder": ("a folder", ()),
+    "files": ("a folder filled one file at a time", ()),  # resumable: earlier runs' files stay (`ffcgs grasp` of many)
 }
 
 
@@ -106,8 +108,8 @@ class Plan:
         for o, op in outs:
             if op in updated:  # the reader of the input speaks first; the write is checked when it happens
                 continue
-            if o.format == "folder":
-                files.check_folder_output(o.path, o.flag, self.overwrite)
+            if o.format in ("folder", "files"):
+                files.check_folder_output(o.path, o.flag, self.overwrite, whole=o.format == "folder")
             else:
                 files.check_output(o.path, o.flag)
 

@@ -10,6 +10,7 @@ import sys
 import time
 from collections.abc import Callable
 from pathlib import Path
+from typing import Annotated
 
 import numpy as np
 import tyro
@@ -19,6 +20,7 @@ from ffcgs_jax.cli.dataset_commands import (DatasetExportCmd, DatasetInfoCmd, ru
                                              run_dataset_info)
 from ffcgs_jax.cli.depth_commands import FuseCmd, RenderDepthCmd, run_fuse, run_render_depth
 from ffcgs_jax.cli.grasp_object import not_the_recorded_object, recorded_object
+from ffcgs_jax.cli.hand_command import HandCmd, run_hand
 from ffcgs_jax.cli.show_command import ShowCmd, run_show
 from ffcgs_jax.dataset.config import DatasetConfig
 from ffcgs_jax.errors import FfcgsError
@@ -27,7 +29,6 @@ from ffcgs_jax.output_plan import Input, Output, Plan
 from ffcgs_jax.physics import protocols as physics_protocols
 from ffcgs_jax.physics.config import ALL_PROTOCOLS, PROTOCOLS, PhysicsConfig
 from ffcgs_jax.synthesis.config import GraspConfig
-from ffcgs_jax.viz.config import RenderConfig
 
 
 @dataclasses.dataclass(frozen=True)
@@ -50,34 +51,6 @@ class SdfCmd:
     out: str = "sdf.npz"
     png: str | None = None
     sdf: SDFConfig = SDFConfig()
-
-
-@dataclasses.dataclass(frozen=True)
-class HandCmd:
-    """Pose the hand (optionally beside an object) and draw it to a PNG; print its fingertip contact points.
-
-    Attributes:
-        q: channel values in hand-spec order (rad), e.g. 9 numbers for the SVH, 16 for the Allegro; default: the
-            open hand (q = 0 within the limits).
-        close: when q is not given, set every channel to lower + close * (upper - lower), 0..1.
-        wrist: wrist pose as X Y Z ROLL PITCH YAW (metres, radians; URDF fixed-axis rpy). Default: the identity,
-            or with an object the palm facing down 3 cm above it.
-        object: built-in name or mesh file to draw with the hand; it rests on a table at its lowest point.
-        hand: built-in hand name or a hand-spec TOML.
-        png: output picture.
-        views: any of front, side, top.
-        scale: multiplies the object's coordinates (0.001 for millimetre meshes).
-    """
-
-    q: tuple[float, ...] | None = None
-    close: float = 0.0
-    wrist: tuple[float, float, float, float, float, float] | None = None
-    object: str | None = None
-    hand: str = "svh"
-    png: str = "hand.png"
-    views: tuple[str, ...] = ("front", "side", "top")
-    scale: float = 1.0
-    render: RenderConfig = RenderConfig()
 
 
 @dataclasses.dataclass(frozen=True)
@@ -188,73 +161,30 @@ def run_sdf(cmd: SdfCmd) -> None:
         files.announce(f"wrote {cmd.png}")
 
 
-def run_hand(cmd: HandCmd) -> None:
-    from ffcgs_jax.hand import kinematics as K
-    from ffcgs_jax.viz import render, scene
-
-    if not 0 <= cmd.close <= 1:
-        raise FfcgsError(f"--close must be in [0, 1], got {cmd.close}")
-    unknown = [v for v in cmd.views if v not in render.VIEWS]
-    if unknown or not cmd.views:
-        raise FfcgsError(f"--views: unknown view(s) {unknown}; valid: {', '.join(render.VIEWS)}")
-    hand = K.load_hand(cmd.hand)
-    lo, hi = np.asarray(hand.lower), np.asarray(hand.upper)
-    q = K.check_q(hand, cmd.q, "--q") if cmd.q is not None else lo + cmd.close * (hi - lo)
-    outside = np.flatnonzero((q < lo - 1e-9) | (q > hi + 1e-9))
-    if outside.size:
-        names = [hand.spec.channel_names[i] for i in outside]
-        raise FfcgsError(f"--q outside the joint limits for channel(s) {names}: "
-                         + ", ".join(f"{n} in [{lo[i]:.4g}, {hi[i]:.4g}]" for n, i in zip(names, outside)))
-    obj = None
-    if cmd.object is not None:
-        from ffcgs_jax.geometry import mesh_io
-
-        obj = mesh_io.load_mesh(cmd.object, scale=cmd.scale)
-    if cmd.wrist is not None:
-        T = pose_from_xyzrpy(cmd.wrist)
-    elif obj is not None:
-        m, d = scene.build_scene(hand.spec, np.eye(4))
-        scene.set_channels(m, d, np.asarray(hand.coupling), q)
-        T = scene.default_wrist_pose(obj, d.site_xpos[hand.palm_site_id], np.asarray(hand.palm_normal))
-    else:
-        T = np.eye(4)
-    # One picture needs one FK: MuJoCo C gives it without JIT compilation (tests hold MJX equal to it).
-    m, d = scene.build_scene(hand.spec, T, obj, table_z=None if obj is None else float(obj.bounds[0, 2]))
-    scene.set_channels(m, d, np.asarray(hand.coupling), q)
-    image, backend = render.render_scene(m, d, cmd.render.width, cmd.render.height, cmd.render.backend, cmd.views)
-    render.save_png(image, cmd.png)
-    contacts = d.site_xpos[list(hand.contact_site_ids)]
-    print(f"{'contact site':<14} {'x (m)':>9} {'y (m)':>9} {'z (m)':>9}")
-    for name, p in zip(hand.spec.contact_sites, contacts):
-        print(f"{name:<14} {p[0]:>9.4f} {p[1]:>9.4f} {p[2]:>9.4f}")
-    files.announce(f"wrote {cmd.png} ({backend} renderer)")
-
-
-def pose_from_xyzrpy(v) -> np.ndarray:
-    from scipy.spatial.transform import Rotation
-
-    v = np.asarray(v, float)
-    if v.shape != (6,) or not np.isfinite(v).all():
-        raise FfcgsError(f"--wrist needs 6 finite numbers X Y Z ROLL PITCH YAW, got {v.tolist()}")
-    T = np.eye(4)
-    T[:3, :3] = Rotation.from_euler("xyz", v[3:]).as_matrix()
-    T[:3, 3] = v[:3]
-    return T
-
-
 @dataclasses.dataclass(frozen=True)
 class GraspCmd:
     """Synthesise force-closure grasps of an object: sample wrist poses, optimise the fingers, filter, evaluate.
 
+    Several objects or a folder of meshes (`ffcgs grasp meshes/ mug`) run one after another, the next one loading
+    while the current one is on the device (`ffcgs_jax.synthesize_many`), and each lands as `<name>.npz` in the
+    `--out` folder as soon as it is done. Run the same command again after an interruption: objects already written
+    with the same settings are skipped. A mesh that fails is one line at the end, the others are still done, and
+    the exit status is then 1. With several objects `--validate` checks each; `--png`, `--mcap`, `--show`,
+    `--poses` and `--depth` are about one object and are refused.
+
     Attributes:
-        object: built-in name (see `ffcgs objects`) or a mesh file (obj, stl, ply, off, glb), metres, z up. With
-            `--depth`, optional (also as `--object`): the true object, in the cameras' world frame: the grasps,
-            filtered on the fused surface, are also measured on it (the *_true fields) and `--validate` simulates it.
+        object: built-in name (see `ffcgs objects`) or a mesh file (obj, stl, ply, off, glb), metres, z up; or
+            several, or folders of mesh files (their obj, stl, ply, off, glb and gltf files, not subfolders; two
+            files of one name are refused). With `--depth`, one, optional (also as `--object`): the true object, in
+            the cameras' world frame: the grasps, filtered on the fused surface, are also measured on it (the fields
+            `*_true`) and `--validate` simulates it.
         depth: plan on an object seen by depth cameras instead of a mesh: a depth folder or .npz (README: "Depth
             input"), fused into the grid of `--res` voxels; the object frame is the cameras' world frame.
         table_z: with `--depth`: the table height in metres; default: fitted to the readings.
         bounds: with `--depth`: workspace box XMIN YMIN ZMIN XMAX YMAX ZMAX (metres): readings outside are ignored.
-        out: grasp arrays (.npz; fields in README).
+        out: grasp arrays (.npz; fields in README); default grasps.npz. With several objects or a folder: the
+            folder of `<object>.npz` files, default grasps/ (the one-object name without its suffix, so a folder run
+            and a one-object run beside it do not collide); it may hold only files of earlier such runs.
         mcap: also write an MCAP log of the run (config, per-iteration energies, grasps).
         png: also draw the best grasps to this PNG.
         show: then open the grasps in the interactive 3D view in the browser until Ctrl-C (`ffcgs show`).
@@ -272,11 +202,11 @@ class GraspCmd:
         physics: physics settings for `--validate` (flags without prefix: --backend, --friction, ...).
     """
 
-    object: tyro.conf.Positional[str | None] = None
+    object: tyro.conf.Positional[Annotated[tuple[str, ...], tyro.conf.arg(metavar="[OBJECT ...]")]] = ()
     depth: str | None = None
     table_z: float | None = None
     bounds: tuple[float, float, float, float, float, float] | None = None
-    out: str = "grasps.npz"
+    out: str | None = None
     mcap: str | None = None
     png: str | None = None
     show: bool = False
@@ -294,13 +224,38 @@ class GraspCmd:
         _protocols(self.protocol)
         check_integer("--need", self.need, 0, 1_000_000)
 
+    @property
+    def many(self) -> bool:
+        """Several objects, or a folder: one grasp file each in the `--out` folder (`cli.grasp_many`)."""
+        from ffcgs_jax.geometry import objects  # not at import: trimesh would slow `ffcgs --help`
+
+        return len(self.object) > 1 or any(o not in objects.names() and Path(o).is_dir() for o in self.object)
+
+    @property
+    def one_object(self) -> str | None:
+        """The object of a one-object run, or None (from depth frames alone)."""
+        return self.object[0] if self.object else None
+
+    @property
+    def out_path(self) -> str:
+        return self.out if self.out is not None else "grasps/" if self.many else "grasps.npz"
+
     def check_inputs(self) -> None:
         """What the command line must combine (a config file may hold any part of it, so not in `check`)."""
-        if self.object is None and self.depth is None:
+        if self.many:
+            for flag, given in (("--depth", self.depth), ("--poses", self.poses), ("--png", self.png),
+                                ("--mcap", self.mcap), ("--show", self.show or None)):
+                if given is not None:
+                    raise FfcgsError(f"{flag} is about one object; with several objects or a folder, grasp one "
+                                     "object at a time for it")
+            if Path(self.out_path).suffix.lower() == ".npz":
+                raise FfcgsError(f"--out {self.out}: with several objects or a folder, --out names a folder (one "
+                                 ".npz per object), e.g. grasps/")
+        if not self.object and self.depth is None:
             raise FfcgsError("ffcgs grasp needs an object (a built-in name or a mesh file) or --depth FRAMES")
         if self.depth is None and (self.table_z is not None or self.bounds is not None):
             raise FfcgsError("--table-z and --bounds belong to --depth (a mesh's table is at its lowest point)")
-        if self.depth is not None and self.validate and self.object is None:
+        if self.depth is not None and self.validate and not self.object:
             raise FfcgsError("--validate with --depth needs --object: the physics test simulates the true mesh")
         if self.show:
             _needs("viser", "--show needs viser for the 3D view: pip install -e \".[viz]\" (or pip install viser)")
@@ -328,15 +283,21 @@ def _print_rows(rows: list[tuple[str, str]]) -> None:
         print(f"{k:<{width}}  {v}")
 
 
-def run_grasp(cmd: GraspCmd) -> None:
+def run_grasp(cmd: GraspCmd) -> int:
+    """The command; its exit status: 0, or with several objects 1 when any failed (`cli.grasp_many`)."""
     from ffcgs_jax.geometry import mesh_io
     from ffcgs_jax.hand import kinematics as K
     from ffcgs_jax.synthesis import grasp_io
     from ffcgs_jax.synthesis.grasp import check_on_mesh, summary_rows, synthesize
 
     cmd.check_inputs()
+    if cmd.many:
+        from ffcgs_jax.cli import grasp_many
+
+        return grasp_many.run(cmd, lambda gs, hand, mesh: _validate(gs, hand, mesh, cmd))
+    obj, out = cmd.one_object, cmd.out_path
     hand = K.load_hand(cmd.hand)
-    mesh = None if cmd.object is None else mesh_io.load_mesh(cmd.object, scale=cmd.grasp.sdf.scale)
+    mesh = None if obj is None else mesh_io.load_mesh(obj, scale=cmd.grasp.sdf.scale)
     poses = None if cmd.poses is None else grasp_io.load_poses(cmd.poses)
     grid, rows = None, []
     if cmd.depth is not None:
@@ -350,12 +311,12 @@ def run_grasp(cmd: GraspCmd) -> None:
         grid = fused.grid
         rows = fuse_rows(fused, cmd.depth) + [("evaluation surface", "the fused SDF (filters, epsilon, "
                                                "contacts); --object adds the true mesh's figures")]
-    name = Path(cmd.object if cmd.object is not None else cmd.depth).stem
+    name = Path(obj if obj is not None else cmd.depth).stem
     # From depth, the filters and epsilon read the fused surface, as a robot without the mesh would: which grasps
     # are returned must not depend on whether a mesh was also given. The true mesh adds the *_true figures.
     gs = synthesize(hand, mesh if cmd.depth is None else fused.grid, cmd.grasp, name, grid=grid, poses=poses)
     if mesh is not None:
-        gs.arrays.update(mesh_io.identity(cmd.object, cmd.grasp.sdf.scale, mesh))
+        gs.arrays.update(mesh_io.identity(obj, cmd.grasp.sdf.scale, mesh))
     if cmd.depth is not None:
         gs.arrays.update(sdf_s=np.asarray(depth_s, np.float64), total_s=np.asarray(gs["total_s"] + depth_s))
     rows += summary_rows(gs)
@@ -369,9 +330,9 @@ def run_grasp(cmd: GraspCmd) -> None:
     if cmd.validate:
         gs, physics_rows = _validate(gs, hand, mesh, cmd)
         rows += physics_rows
-    grasp_io.save_npz(gs, cmd.out)
+    grasp_io.save_npz(gs, out)
     _print_rows(rows)
-    files.announce(f"wrote {cmd.out}")
+    files.announce(f"wrote {out}")
     if cmd.mcap:
         grasp_io.write_mcap(gs, cmd.mcap, hand, rows, mesh=mesh if mesh is not None else fused.mesh)
         files.announce(f"wrote {cmd.mcap}")
@@ -388,6 +349,7 @@ def run_grasp(cmd: GraspCmd) -> None:
         files.commit_outputs()  # the view is served until Ctrl-C, which ends the process at once
 
         serve(viewer.show_grasps(gs, hand, mesh if mesh is not None else fused.mesh), 0.0)
+    return 0
 
 
 def _validate(gs, hand, mesh, cmd: GraspCmd):
@@ -533,10 +495,11 @@ def _weights(g: GraspConfig) -> Input:
 
 # What each command reads and writes (`output_plan`), checked before it runs.
 PLANS: dict[str, Callable[..., Plan]] = {
-    "grasp": lambda c: Plan((Input("object", c.object), Input("--depth", c.depth, folder=True),
-                             Input("--poses", c.poses), Input("--hand", c.hand), _weights(c.grasp)),
-                            (Output("--out", c.out, "npz"), Output("--mcap", c.mcap, "mcap"),
-                             Output("--png", c.png, "png"))),
+    "grasp": lambda c: Plan((*(Input("object", o, folder=Path(o).is_dir()) for o in c.object),
+                             Input("--depth", c.depth, folder=True), Input("--poses", c.poses), Input("--hand", c.hand),
+                             _weights(c.grasp)),
+                            (Output("--out", c.out_path, "files" if c.many else "npz"),
+                             Output("--mcap", c.mcap, "mcap"), Output("--png", c.png, "png"))),
     "eval": lambda c: Plan((Input("grasps", c.grasps, updated=True), Input("--object", c.object),
                             Input("--hand", c.hand)),
                            (Output("--out", c.out or c.grasps, "npz"), Output("--video", c.video, "video"))),

@@ -117,7 +117,7 @@ def _run(argv: list[str]) -> int:
 
         jax_cache.enable()  # a second run loads its executables from disk (FFCGS_JAX_CACHE=off: compile every time)
         with plan.outputs_together():  # all of the command's outputs, or none
-            fn(cmd)
+            status = fn(cmd)
     except FfcgsError as e:
         print(f"ffcgs: error: {e}", file=sys.stderr)
         return 2
@@ -128,7 +128,7 @@ def _run(argv: list[str]) -> int:
         devnull = os.open(os.devnull, os.O_WRONLY)
         os.dup2(devnull, sys.stdout.fileno())
         return 141
-    return 0
+    return status or 0  # a command that went on past failures says so (`ffcgs grasp` of many objects: 1)
 
 
 if __name__ == "__main__":

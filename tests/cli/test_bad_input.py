@@ -225,7 +225,7 @@ CASES = [
     (["grasp", "mug", "--weights", "w_list.npz"], "w_list.npz is not an ffcgs checkpoint: its __meta__ entry is not a "
                                                   "JSON object"),
     # issue 36: unclear messages before
-    (["grasp", "dir.obj"], "mesh file dir.obj is a folder, not a file"),
+    (["grasp", "dir.obj"], r"folder dir.obj holds no mesh files \(obj, stl"),  # a folder is a list of objects
     (["eval", "dir.npz"], "grasp file dir.npz is a folder, not a file"),
     (["grasp", "mug", "--poses", "dir.npy"], "pose file dir.npy is a folder, not a file"),
     (["grasp", "mug", "--config", "dir.toml"], "config file dir.toml is a folder, not a file"),
