@@ -122,13 +122,16 @@ def _build_table(mesh: trimesh.Trimesh, dtype) -> MeshTable:
     tri = verts[faces]
     centre = 0.5 * (tri.reshape(-1, 3).min(0) + tri.reshape(-1, 3).max(0))
     fn = np.asarray(mesh.face_normals, np.float64)  # `metrics.mesh_contacts` reads trimesh's normals as they are
-    vsum = np.zeros_like(verts)
-    for k in range(3):
-        np.add.at(vsum, faces[:, k], fn)
+    fn3 = np.repeat(fn, 3, axis=0)  # each face's normal once per corner (and per edge)
+
+    def sums(index, n):  # per index, the sum of the normals given it (np.add.at's result, 10x quicker)
+        return np.stack([np.bincount(index, weights=fn3[:, j], minlength=n) for j in range(3)], axis=1)
+
+    vsum = sums(faces.ravel(), len(verts))
     edges = np.sort(np.stack([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]], 1).reshape(-1, 2), axis=1)
     _, inv = np.unique(edges[:, 0] * len(verts) + edges[:, 1], return_inverse=True)  # one integer per edge: fast
-    esum = np.zeros((inv.max() + 1, 3))
-    np.add.at(esum, inv.ravel(), np.repeat(fn, 3, axis=0))
+    inv = inv.ravel()
+    esum = sums(inv, inv.max() + 1)
     f = len(faces)
     table = np.concatenate([tri_table(tri - centre, np.float64)[:f], fn,  # padded below, not to its chunk size
                             _unit_rows(esum[inv.reshape(f, 3)]).reshape(f, 9), _unit_rows(vsum[faces]).reshape(f, 9)],
