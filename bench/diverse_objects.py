@@ -45,6 +45,7 @@ target, grasp quality unchanged, is the scoreboard's (bench/quality.py), not mea
 
 import argparse
 import dataclasses
+import functools
 import hashlib
 import json
 import os
@@ -110,6 +111,8 @@ def parser() -> Parser:
     ap.add_argument("--sampler", default=None, help="default: GraspConfig's (auto)")
     ap.add_argument("--seed", type=int, default=None)
     ap.add_argument("--iterator", action="store_true", help="fj.synthesize_many instead of a loop of synthesize")
+    ap.add_argument("--prefetch", type=int, default=None, metavar="K",
+                    help="with --iterator: objects prepared ahead (default: synthesize_many's)")
     ap.add_argument("--compare", action="store_true", help="run the loop and the iterator, each in its own process")
     ap.add_argument("--out", type=Path, help="write every figure here (JSON)")
     return ap
@@ -453,7 +456,7 @@ def loop(hand, cfg, items, counter: Compiles, log) -> list[dict]:
     return rows
 
 
-def iterate(hand, cfg, items, counter: Compiles, log) -> list[dict]:
+def iterate(hand, cfg, items, counter: Compiles, log, prefetch: int | None = None) -> list[dict]:
     """The same through `fj.synthesize_many` given the mesh files: it loads and prepares the next objects while the
     current one synthesises, so an object's time runs from the previous GraspSet to its own, ranked, and its load
     time is not its own (reported as 0)."""
@@ -461,7 +464,8 @@ def iterate(hand, cfg, items, counter: Compiles, log) -> list[dict]:
 
     rows = []
     mark, t0 = counter.mark(), time.perf_counter()
-    stream = fj.synthesize_many(hand, [str(path) for _, path, _ in items], cfg)
+    extra = {} if prefetch is None else {"prefetch": prefetch}
+    stream = fj.synthesize_many(hand, [str(path) for _, path, _ in items], cfg, **extra)
     for (name, _, entry), result in zip(items, stream):
         if result.error is not None:
             raise FfcgsError(f"{name}: {result.error}")
@@ -518,7 +522,7 @@ def run(args, log) -> dict:
     hand = fj.load_hand(args.hand)
     hand_load = {"hand_s": time.perf_counter() - t0, **counter.since(mark)}
     mode = "iterator" if args.iterator else "loop"
-    go = iterate if args.iterator else loop
+    go = functools.partial(iterate, prefetch=args.prefetch) if args.iterator else loop
     log(f"warm-up ({WARMUP}, the process's first compile) ...")
     warm = go(hand, cfg, [(WARMUP, WARMUP, {"file": None, "kind": "builtin", "faces": len(warm_mesh.faces)})],
               counter, log)[0]
@@ -614,6 +618,7 @@ def compare(args, log) -> dict:
                     cmd += [f"--{flag}", str(getattr(args, flag))]
             cmd += ["--quick"] * args.quick + (["--limit", str(args.limit)] if args.limit else [])
             cmd += ["--iterator"] if mode == "iterator" else []
+            cmd += ["--prefetch", str(args.prefetch)] if mode == "iterator" and args.prefetch is not None else []
             log(f"{mode}: {' '.join(cmd[1:])}")
             if subprocess.run(cmd).returncode != 0:
                 raise FfcgsError(f"the {mode} run failed")
