@@ -20,6 +20,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ffcgs_jax.evaluation import device_metrics as dm
+from ffcgs_jax.evaluation import epsilon_search
 from ffcgs_jax.evaluation.metrics import sphere_basis
 from ffcgs_jax.geometry import mesh_io
 from ffcgs_jax.geometry import sdf as S
@@ -52,14 +53,14 @@ def parts(hand, mesh, target, out, cfg, repeats: int) -> dict[str, tuple[float, 
     closest, normals, signed = contacts_fn(table, flat)
     closest, normals = closest.reshape(b, c, 3), normals.reshape(b, c, 3)
     U = quality.basis(mcfg.basis_size)
-    starts = jnp.asarray(sphere_basis(dm.EPS_STARTS).T, contacts.dtype)
+    starts = jnp.asarray(sphere_basis(epsilon_search.EPS_STARTS).T, contacts.dtype)
     wrench_fn = jax.jit(jax.vmap(lambda p, n: quality.primitive_wrenches(p, n, target.centre, target.radius, mcfg.mu,
                                                                          mcfg.cone_edges)))
     W = wrench_fn(closest, normals)
     lp_fn = jax.jit(jax.vmap(lambda w: lp_jax.q_distance(w, U)[0]))
-    rank_fn = jax.jit(jax.vmap(dm._full_rank))
-    eps_fn = jax.jit(jax.vmap(dm.search_epsilon, (0, None)))
-    cold_fn = jax.jit(jax.vmap(functools.partial(dm.search_epsilon, warm=False), (0, None)))
+    rank_fn = jax.jit(jax.vmap(epsilon_search.full_rank))
+    eps_fn = jax.jit(jax.vmap(epsilon_search.search_epsilon, (0, None)))
+    cold_fn = jax.jit(jax.vmap(functools.partial(epsilon_search.search_epsilon, warm=False), (0, None)))
     rows = {
         "contacts (brute force)": timed(lambda: contacts_fn(table, flat), repeats),
         "wrench sets": timed(lambda: wrench_fn(closest, normals), repeats),

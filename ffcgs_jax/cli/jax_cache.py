@@ -39,5 +39,6 @@ def enable(path: str | Path | None = None) -> Path | None:
                       "(set FFCGS_JAX_CACHE to a writable folder, or off)", stacklevel=2)
         return None
     jax.config.update("jax_compilation_cache_dir", str(path))
-    jax.config.update("jax_persistent_cache_min_compile_time_secs", 1.0)
+    # every executable, the small ones too: the ~40 under a second each took ~3 s together to compile again
+    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
     return path

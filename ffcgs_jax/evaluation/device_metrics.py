@@ -23,7 +23,7 @@ same figures for every grasp at once, on the device that ran the synthesis, and 
   duals do not depend on the ray, so that basis stays dual feasible). Every h(u) of a unit u
   bounds epsilon from above, so the result is never below Qhull's; bench/RESULTS.md gives how close it comes
   ("End-to-end speed"). Force closure: a full-rank wrench set (as `metrics.epsilon_q1` asks), the origin in the
-  hull (E_g at most `_eps_tol`'s bound) and the searched epsilon above its bound.
+  hull (E_g at most `eps_tol`'s bound) and the searched epsilon above its bound.
 """
 
 import collections
@@ -36,18 +36,13 @@ import numpy as np
 import trimesh
 
 from ffcgs_jax.errors import FfcgsError
+from ffcgs_jax.evaluation.epsilon_search import EPS_STARTS, eps_tol, full_rank, search_epsilon
 from ffcgs_jax.evaluation.metrics import MetricsConfig, sphere_basis
 from ffcgs_jax.geometry import sdf as sdf_mod
 from ffcgs_jax.geometry.triangles import closest_offset, dist2, orientation, solid_angles, tri_table
 from ffcgs_jax.synthesis import compile_clock, lp_jax, quality
 from ffcgs_jax.types import Array, Float
 
-EPS_STARTS = 256  # spread start directions of the epsilon search
-EPS_KEEP = 12  # of which the lowest start a facet walk
-EPS_WALK = 5  # steps of each walk (walks measured converged within 6)
-_MAX_PIVOTS = 64  # per simplex phase; the 6-row LPs here take about 10
-_PIVOTS_PER_REFRESH = 4
-_EXACT = jax.lax.Precision.HIGHEST
 _POINT_CHUNK = 4096  # fingertip points per brute-force pass (bounds the (points, triangles) work in flight)
 FACE_CHUNK = 2048  # triangles per streamed chunk: every mesh, of 10 or 200,000 faces, runs through one executable
 _MIN_GRASPS = 32  # the smallest batch bucket: smaller batches are padded to it (see `_bucket`)
@@ -150,12 +145,9 @@ def _build_table(mesh: trimesh.Trimesh, dtype) -> MeshTable:
 # ------------------------------------------------------------------------------------------------ contacts
 
 
-def _tol(dtype) -> tuple[float, float]:
-    """(barycentric tolerance for "on an edge or vertex", relative singular value under which a wrench set is
-    flat) per precision. The reference's 1e-9 for both in float64, but the flat test reads eigenvalues of the Gram
-    matrix, the squares, which rounding holds only down to ~1e-16 relative: 1e-7 there. Float32 rounds at ~1e-7:
-    1e-5 on edges, 1e-3 for flatness (sets between 1e-9 and these are nearly flat: their epsilon is ~0)."""
-    return (1e-9, 1e-7) if jnp.dtype(dtype) == jnp.float64 else (1e-5, 1e-3)
+def _edge_tol(dtype) -> float:
+    """Barycentric tolerance for "on an edge or vertex": the reference's 1e-9 in float64; float32 rounds at ~1e-7."""
+    return 1e-9 if jnp.dtype(dtype) == jnp.float64 else 1e-5
 
 
 def _barycentric(row, closest_rel):
@@ -213,7 +205,7 @@ def _mesh_point(centre, scale, orient, near_d2, r, solid_angle, p):
     dist = jnp.sqrt(jnp.sum(off * off))
     tri0 = row[0:3]
     inside = orient * solid_angle / (4 * jnp.pi) > 0.5
-    edge_tol, _ = _tol(p.dtype)
+    edge_tol = _edge_tol(p.dtype)
     bary = _barycentric(row, closest - tri0)
     on_edge = jnp.any(bary < edge_tol)
     on_surface = dist <= edge_tol * scale
@@ -260,224 +252,6 @@ def _sdf_contacts(grid: sdf_mod.GradientSDF, points: Float[Array, "P 3"]):
 # ------------------------------------------------------------------------------------------------ quality
 
 
-def _eps_tol(dtype) -> tuple[float, float]:
-    """(epsilon above which a hull holds the origin strictly, E_g at most which it holds it): the reference's 1e-12
-    for epsilon in float64; the LP's value is exact at a vertex up to rounding."""
-    return (1e-12, 1e-9) if jnp.dtype(dtype) == jnp.float64 else (1e-6, 1e-6)
-
-
-def _simplex(W, s, d, phase: int, basis, Binv, max_iter: int):
-    """Pivots of the revised simplex on min c.x, [W | diag(s)] x = d, x >= 0 from a feasible `basis` with inverse
-    `Binv`: phase 1 prices the 6 artificial columns diag(s) at 1 and the wrenches at 0, phase 2 the wrenches at 1,
-    and there the artificials never enter; a basic one (left at level 0 by phase 1) leaves at the first pivot whose
-    column has a non-zero entry in its row. Dantzig's rule, Bland's after `lp_jax._BLAND_AFTER` degenerate pivots, the
-    inverse refreshed every `_PIVOTS_PER_REFRESH` (`lp_jax.inverse`).
-
-    Written with one-hot selections, elementwise products and sums instead of gathers, scatters, matrix products
-    and library inverses: on a GPU XLA fuses these into a few kernels per pivot, where small batched matrix
-    products and LU factorisations are each a library call (`synthesis.lp_jax` says the same of its pivots)."""
-    n = W.shape[1]
-    dt = W.dtype
-    tol = lp_jax._tol(dt)  # the Q-distance simplex's pivot tolerance: the same LPs' scale
-    cols = jnp.arange(n + 6)
-    cost = jnp.where(cols < n, 0.0 if phase == 1 else 1.0, 1.0 if phase == 1 else 0.0).astype(dt)
-    enter_ok = jnp.ones(n + 6, bool) if phase == 1 else cols < n
-
-    def column(j):
-        """Column j of [W | diag(s)] (6,), by a one-hot sum rather than a gather."""
-        hot = (cols == j).astype(dt)
-        return jnp.sum(W * hot[None, :n], axis=1) + s * hot[n:]
-
-    def matrix(basis):
-        return _columns(W, s, basis)
-
-    def pivot(state):
-        basis, Binv, it, degenerate, done = state
-        xB = jnp.maximum(jnp.sum(Binv * d[None, :], axis=1), 0.0)
-        y = jnp.sum(Binv * jnp.sum(cost[None, :] * (basis[:, None] == cols[None, :]), axis=1)[:, None], axis=0)
-        priced = jnp.concatenate([jnp.sum(W * y[:, None], axis=0), s * y])
-        in_basis = jnp.any(basis[:, None] == cols[None, :], axis=0)
-        r = jnp.where(in_basis | ~enter_ok, 0.0, cost - priced)
-        neg = r < -tol
-        enter = jnp.where(degenerate >= lp_jax._BLAND_AFTER, jnp.argmax(neg), jnp.argmin(r))
-        u = jnp.sum(Binv * column(enter)[None, :], axis=1)
-        stuck = (basis >= n) & (phase == 2) & (jnp.abs(u) > tol)
-        ratio = jnp.where(stuck, 0.0, jnp.where(u > tol, xB / jnp.where(u > tol, u, 1.0), jnp.inf))
-        best = jnp.min(ratio)
-        leave = jnp.argmin(jnp.where(ratio <= best + tol, basis, n + 6))
-        stop = done | ~jnp.any(neg) | ~jnp.isfinite(best)
-        at = jnp.arange(6) == leave
-        u_leave = jnp.sum(jnp.where(at, u, 0.0))
-        row = jnp.sum(jnp.where(at[:, None], Binv, 0.0), axis=0) / jnp.where(jnp.abs(u_leave) > 0, u_leave, 1.0)
-        new = jnp.where(at[:, None], row[None, :], Binv - u[:, None] * row[None, :])
-        return (jnp.where(stop, basis, jnp.where(at, enter, basis)), jnp.where(stop, Binv, new),
-                it + jnp.where(stop, 0, 1), jnp.where(best <= tol, degenerate + 1, 0), stop)
-
-    def refresh(state):
-        basis, Binv, it, degenerate, done = state
-        fresh, smallest = lp_jax.inverse(matrix(basis))
-        return basis, jnp.where(smallest > 0, fresh, Binv), it, degenerate, done
-
-    state = (basis, Binv, jnp.zeros((), jnp.int32), jnp.zeros((), jnp.int32), jnp.zeros((), bool))
-    basis, Binv, _, _, _ = _pivot_loop(pivot, refresh, state, max_iter)
-    return basis, Binv
-
-
-def _pivot_loop(pivot, refresh, state, max_iter: int):
-    """Trips of pivots, the inverse refreshed after each, until the state's done flag (state[4]) or `max_iter`
-    pivots (state[2])."""
-
-    def trip(state):
-        # Each trip ends in a loop-condition check, a device-to-host sync on a GPU: there the pivots of a trip are
-        # unrolled, twice as many. On a CPU a loop keeps one copy of the pivot: every kernel of an executable is
-        # its own memory mapping there, and unrolled copies of a whole evaluation ran a long test process out of
-        # mappings (vm.max_map_count) after a few dozen executables.
-        if jax.default_backend() == "cpu":
-            state = jax.lax.fori_loop(0, _PIVOTS_PER_REFRESH, lambda _, st: pivot(st), state)
-        else:
-            for _ in range(2 * _PIVOTS_PER_REFRESH):
-                state = pivot(state)
-        return refresh(state)
-
-    return jax.lax.while_loop(lambda st: ~st[4] & (st[2] < max_iter), trip, state)
-
-
-def _columns(W, s, basis):
-    """The basis matrix of [W | diag(s)] (6, 6), by one-hot sums (see `_simplex`)."""
-    n = W.shape[1]
-    cols = jnp.arange(n + 6)
-    hot = (basis[None, :] == cols[:, None]).astype(W.dtype)  # (n + 6, 6)
-    return jnp.sum(W[:, :, None] * hot[None, :n, :], axis=1) + s[:, None] * hot[n:, :]
-
-
-def _dual_simplex(W, s, d, basis, Binv, max_iter: int):
-    """Dual simplex pivots on phase 2 of `ray_facet`'s LP (min 1.x, [W | diag(s)] x = d, x >= 0, artificials never
-    entering) from a basis optimal for another right-hand side: its duals y = B^-T c_B do not depend on d, so it stays
-    dual feasible, and only the basic values B^-1 d may have turned negative. Each pivot takes the most negative basic
-    value out and lets in the wrench column of least reduced cost per unit of that row, which keeps every reduced
-    cost >= 0. A basic artificial must end at 0: one above 0 has its column's sign flipped (its row of B^-1 negated),
-    which makes its value negative and takes it out the same way. A walk's next ray leaves through the facet it came
-    from or one near it, so a few pivots replace a cold two-phase solve (bench/RESULTS.md, "End-to-end speed")."""
-    n = W.shape[1]
-    dt = W.dtype
-    tol = lp_jax._tol(dt)
-    cols = jnp.arange(n + 6)
-    six = jnp.arange(6)
-
-    def values(basis, Binv, s):
-        """B^-1 d, with basic artificials above 0 flipped to below it: (values, Binv, s)."""
-        xB = jnp.sum(Binv * d[None, :], axis=1)
-        flip = (basis >= n) & (xB > tol)
-        which = jnp.sum(jnp.where(flip[:, None], (basis[:, None] - n) == six[None, :], False), axis=0) > 0
-        sign = jnp.where(flip, -1.0, 1.0).astype(dt)
-        return xB * sign, Binv * sign[:, None], jnp.where(which, -s, s)
-
-    def pivot(state):
-        basis, Binv, it, s, done = state
-        xB, Binv, s = values(basis, Binv, s)
-        leave = jnp.argmin(xB)
-        stop = done | (jnp.min(xB) >= -tol)
-        at = six == leave
-        row = jnp.sum(jnp.where(at[:, None], Binv, 0.0), axis=0)  # e_leave^T B^-1
-        alpha = jnp.concatenate([jnp.sum(W * row[:, None], axis=0), s * row])
-        y = jnp.sum(Binv * (basis < n).astype(dt)[:, None], axis=0)
-        reduced = jnp.maximum(1.0 - jnp.sum(W * y[:, None], axis=0), 0.0)  # >= 0 but for rounding
-        in_basis = jnp.any(basis[:, None] == cols[None, :n], axis=0)
-        ok = ~in_basis & (alpha[:n] < -tol)
-        ratio = jnp.where(ok, reduced / jnp.where(ok, -alpha[:n], 1.0), jnp.inf)
-        enter = jnp.argmin(ratio)
-        stop = stop | ~jnp.any(ok)  # no column can take the row: d outside the cone (no force closure)
-        hot = (cols[:n] == enter).astype(dt)
-        u = jnp.sum(Binv * jnp.sum(W * hot[None, :], axis=1)[None, :], axis=1)
-        u_leave = jnp.sum(jnp.where(at, u, 0.0))
-        new_row = row / jnp.where(jnp.abs(u_leave) > 0, u_leave, 1.0)
-        new = jnp.where(at[:, None], new_row[None, :], Binv - u[:, None] * new_row[None, :])
-        return (jnp.where(stop, basis, jnp.where(at, enter, basis)), jnp.where(stop, Binv, new),
-                it + jnp.where(stop, 0, 1), s, stop)
-
-    def refresh(state):
-        basis, Binv, it, s, done = state
-        fresh, smallest = lp_jax.inverse(_columns(W, s, basis))
-        return basis, jnp.where(smallest > 0, fresh, Binv), it, s, done
-
-    state = (basis, Binv, jnp.zeros((), jnp.int32), s, jnp.zeros((), bool))
-    basis, Binv, _, s, _ = _pivot_loop(pivot, refresh, state, max_iter)
-    return basis, Binv, s
-
-
-class RayBasis(NamedTuple):
-    """The optimal basis of a `ray_facet` LP, for the next ray of a walk to start from (`_dual_simplex`)."""
-
-    basis: Array  # (6,) column indices into [W | diag(s)]
-    Binv: Array  # (6, 6)
-    s: Array  # (6,) the artificial columns' signs
-
-
-def ray_facet(W: Float[Array, "6 N"], d: Float[Array, " 6"], warm: RayBasis | None = None
-              ) -> tuple[Float[Array, " 6"], RayBasis]:
-    """Unit normal of the facet of conv(W) through which the ray from the origin along d leaves (the origin inside),
-    and the LP's optimal basis.
-
-    The ray leaves at d / g, g = min 1.lam s.t. W lam = d, lam >= 0 (the gauge of d); that LP's dual optimum y is
-    the polar vertex of the facet (y . w <= 1 with equality on it), so the normal is y / |y| and the facet's distance
-    1 / |y|. Cold: two-phase simplex on the 6 rows, phase 1 from the artificial columns sign(d_i) e_i. `warm`: the
-    optimal basis of the same W for another d, finished by dual simplex pivots (`_dual_simplex`)."""
-    n = W.shape[1]
-    dt = W.dtype
-    if warm is None:
-        s = jnp.where(d >= 0, 1.0, -1.0).astype(dt)
-        basis, Binv = jnp.arange(n, n + 6), jnp.diag(s)
-        basis, Binv = _simplex(W, s, d, 1, basis, Binv, _MAX_PIVOTS)
-        basis, Binv = _simplex(W, s, d, 2, basis, Binv, _MAX_PIVOTS)
-    else:
-        basis, Binv, s = _dual_simplex(W, warm.s, d, warm.basis, warm.Binv, _MAX_PIVOTS)
-    y = jnp.sum(Binv * (basis < n).astype(dt)[:, None], axis=0)  # B^-T c_B, c_B = 1 on wrench columns
-    size = jnp.sqrt(jnp.sum(y * y))
-    return jnp.where(size > 0, y / jnp.where(size > 0, size, 1.0), d), RayBasis(basis, Binv, s)
-
-
-def search_epsilon(W: Float[Array, "6 N"], starts: Float[Array, "M 6"], warm: bool = True) -> Float[Array, ""]:
-    """min over searched unit directions u of h(u) = max_j u . w_j: an upper bound of the signed Ferrari-Canny
-    epsilon, exact where the walk reaches the nearest facet (see the module docstring). Meaningful when the
-    origin is inside the hull (force closure); otherwise only its sign is. `warm` False solves every ray of a walk
-    cold (two phases), as before the warm starts: the same facets, kept for tests and bench/evaluation_parts.py."""
-    # full float32 products: a GPU's default (TF32-like) precision errs by ~1e-3, a tenth of a typical epsilon
-    h0 = jnp.max(jnp.matmul(starts, W, precision=_EXACT), axis=1)
-    dirs = starts[jax.lax.top_k(-h0, EPS_KEEP)[1]]
-    best = jnp.min(h0)
-
-    def step(dirs, best, start):  # start: the rays' last bases (RayBasis), or None to solve them cold
-        new, bases = jax.vmap(ray_facet, (None, 0, 0 if start is not None else None))(W, dirs, start)
-        moved = jnp.any(jnp.abs(new - dirs) > 1e-6)
-        h = jnp.max(jnp.matmul(new, W, precision=_EXACT), axis=1)
-        return new, jnp.minimum(best, jnp.min(h)), moved, bases
-
-    def walk(carry):
-        i, dirs, best, _, bases = carry
-        dirs, best, moved, bases = step(dirs, best, bases if warm else None)
-        return i + 1, dirs, best, moved, bases
-
-    # the first ray of each walk is solved cold, the next ones from the basis of the ray before (a few dual pivots);
-    # a walk that returns the facet it started from has ended (the origin's foot point lies in that facet)
-    dirs, best, moved, bases = step(dirs, best, None)
-    carry = (jnp.ones((), jnp.int32), dirs, best, moved, bases)
-    return jax.lax.while_loop(lambda c: (c[0] < EPS_WALK) & c[3], walk, carry)[2]
-
-
-def _full_rank(W: Float[Array, "6 N"]) -> Array:
-    """Whether the centred wrenches span R^6 (`metrics.epsilon_q1`'s test: smallest singular value above
-    `_tol`'s relative bound), from the Gram matrix G: its smallest eigenvalue lies within a factor of 6 of
-    1 / trace(G^-1) and its largest of trace(G) / 6 .. trace(G), so the ratio is tested to that factor, by an
-    elementwise Gauss-Jordan inverse instead of a library SVD (see `_simplex`)."""
-    Wc = W - jnp.mean(W, axis=1, keepdims=True)
-    G = jnp.sum(Wc[:, None, :] * Wc[None, :, :], axis=2)
-    inv, smallest = lp_jax.inverse(G)
-    tr, tr_inv = jnp.trace(G), jnp.trace(inv)
-    _, rank_tol = _tol(W.dtype)
-    ok = (smallest > 0) & jnp.isfinite(tr_inv) & (tr_inv > 0)
-    return ok & (1.0 / jnp.where(ok, tr_inv, 1.0) > rank_tol**2 * tr)
-
-
 def _grasp(closest, normals, signed, q, lower, upper, centre, radius, starts, U, cfg: MetricsConfig):
     dt = closest.dtype
     touching = jnp.abs(signed) <= cfg.contact_tol
@@ -485,10 +259,10 @@ def _grasp(closest, normals, signed, q, lower, upper, centre, radius, starts, U,
     src = jnp.where(touching, jnp.arange(len(signed)), jnp.argmax(touching))  # silent tips repeat a touching one
     W = quality.primitive_wrenches(closest[src], normals[src], centre, radius, cfg.mu, cfg.cone_edges)
     e_g, lp_ok, _ = lp_jax.q_distance(W, U)
-    full_rank = _full_rank(W)
+    spans = full_rank(W)
     eps = search_epsilon(W, starts)
-    eps_tol, g_tol = _eps_tol(dt)
-    closure = any_touch & lp_ok & full_rank & (e_g <= g_tol) & (eps > eps_tol)
+    eps_min, g_tol = eps_tol(dt)
+    closure = any_touch & lp_ok & spans & (e_g <= g_tol) & (eps > eps_min)
     e_g = jnp.where(any_touch, e_g, jnp.nan)
     e_c = jnp.sqrt(jnp.mean((signed + cfg.d0) ** 2))
     mid, half = 0.5 * (lower + upper), 0.5 * (upper - lower)

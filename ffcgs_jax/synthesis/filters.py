@@ -92,7 +92,8 @@ def tips_below_table(sdf: GradientSDF, cached_tips: Float[Array, "T C 3"], margi
 
 
 def hand_penetration(
-    hand: Hand, sdf: GradientSDF, wrist_pose: Float[Array, "4 4"], q: Float[Array, " Q"]
+    hand: Hand, sdf: GradientSDF, wrist_pose: Float[Array, "4 4"], q: Float[Array, " Q"],
+    frames: K.HandFrames | None = None,
 ) -> tuple[Float[Array, ""], Float[Array, " S"]]:
     """How deep the hand's collision spheres reach into the object (the table is left to `hand_table_penetration`).
 
@@ -106,20 +107,22 @@ def hand_penetration(
         sdf: the object grid.
         wrist_pose: (4, 4) world <- hand root.
         q: (Q,) channels.
+        frames: `hand.kinematics.forward_kinematics(hand, wrist_pose, q)`, if the caller has it.
     Returns:
         (largest depth (), depth of each sphere (S,)), metres, >= 0.
     """
-    centres, radii = K.collision_spheres(hand, wrist_pose, q)
+    centres, radii = K.collision_spheres(hand, wrist_pose, q, frames)
     d, _ = S.query(sdf, centres)
     depth = jnp.maximum(radii - d, 0.0)
     return jnp.max(depth), depth
 
 
 def hand_table_penetration(
-    hand: Hand, sdf: GradientSDF, wrist_pose: Float[Array, "4 4"], q: Float[Array, " Q"]
+    hand: Hand, sdf: GradientSDF, wrist_pose: Float[Array, "4 4"], q: Float[Array, " Q"],
+    frames: K.HandFrames | None = None,
 ) -> tuple[Float[Array, ""], Float[Array, " S"]]:
     """As `hand_penetration`, against the table half-space z <= table_z: depth max(0, r - (z_c - table_z))."""
-    centres, radii = K.collision_spheres(hand, wrist_pose, q)
+    centres, radii = K.collision_spheres(hand, wrist_pose, q, frames)
     depth = jnp.maximum(radii - (centres[:, 2] - sdf.table_z), 0.0)
     return jnp.max(depth), depth
 

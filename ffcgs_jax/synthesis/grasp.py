@@ -25,6 +25,7 @@ from ffcgs_jax.evaluation import device_metrics, metrics, ranking, score
 from ffcgs_jax.geometry import sdf as sdf_mod
 from ffcgs_jax.hand import kinematics as K
 from ffcgs_jax.hand.kinematics import Hand
+from ffcgs_jax.hand.sites import palm_centre_root
 from ffcgs_jax.synthesis import filters as F
 from ffcgs_jax.synthesis import compile_clock, fetch, memory, samplers, sharding
 from ffcgs_jax.synthesis.config import EnergyConfig, GraspConfig, OptimConfig
@@ -55,9 +56,10 @@ class DeviceConfig(NamedTuple):
 
 def _device_part(hand: Hand, target: Target, key: jax.Array, given: jax.Array | None, cfg: DeviceConfig,
                  n: int, given_q: jax.Array | None = None, sampler_params: dict | None = None,
-                 sampler_res: int | None = None, mesh: Mesh | None = None) -> DeviceOut:
+                 sampler_res: int | None = None, mesh: Mesh | None = None, palm_root: jax.Array | None = None
+                 ) -> DeviceOut:
+    """`palm_root`: `hand.sites.palm_centre_root`, from the host (where sampling; tracing MJX for it costs seconds)."""
     if given is None:
-        palm_root = K.forward_kinematics(hand, jnp.eye(4, dtype=hand.lower.dtype), jnp.zeros_like(hand.lower)).palm_pos
         poses = samplers.CORES[cfg.sampler](hand, palm_root, key, target.sdf, n, cfg.sampling, cfg.filters,
                                             params=sampler_params, res=sampler_res, mesh=mesh)
     else:
@@ -74,12 +76,13 @@ def _descend_and_filter(hand: Hand, target: Target, poses: jax.Array, given_q: j
     opt = _optimize(hand, target, poses, cfg.energy, cfg.optim, given_q)
     poses = opt.wrist_pose
     tips = jnp.moveaxis(opt.trace.tips, 1, 0)  # (B, T+1, C, 3)
-    pen = jax.vmap(lambda H, q: F.hand_penetration(hand, target.sdf, H, q)[0])(poses, opt.q)
-    tpen = jax.vmap(lambda H, q: F.hand_table_penetration(hand, target.sdf, H, q)[0])(poses, opt.q)
+    # one kinematics pass for the final filters: each pass is a large graph to trace and compile
+    frames = jax.vmap(K.forward_kinematics, (None, 0, 0))(hand, poses, opt.q)
+    pen = jax.vmap(lambda H, q, f: F.hand_penetration(hand, target.sdf, H, q, f)[0])(poses, opt.q, frames)
+    tpen = jax.vmap(lambda H, q, f: F.hand_table_penetration(hand, target.sdf, H, q, f)[0])(poses, opt.q, frames)
     # the chosen sphere's centre moves along the normal as its skin point does (a rotation moves the skin point
     # tangentially relative to the centre), and only the normal part enters the squeeze direction
-    choice = jax.vmap(lambda H, q: fingertip_contacts(hand, target.sdf, K.forward_kinematics(hand, H, q)).choice)(
-        poses, opt.q)
+    choice = jax.vmap(lambda f: fingertip_contacts(hand, target.sdf, f).choice)(frames)
     jac = jax.vmap(lambda H, q, k: jax.jacfwd(
         lambda x: chosen(K.fingertip_spheres(hand, K.forward_kinematics(hand, H, x))[0], k))(q))(poses, opt.q, choice)
     return DeviceOut(
@@ -100,7 +103,7 @@ _COMPILED: dict = {}
 
 
 def _compiled(hand: Hand, target: Target, key: jax.ShapeDtypeStruct, given, dcfg: DeviceConfig, n: int, given_q=None,
-              sampler_params=None, sampler_res=None, mesh=None):
+              sampler_params=None, sampler_res=None, mesh=None, palm_root=None):
     """Ahead-of-time compiled device part, cached like jit's own cache (AOT compiles bypass that cache), so that
     compile time can be reported apart and a second object of the same grid size reuses the executable. A new
     executable is checked against the device's free memory once, when compiled (`memory.check_fits` reads its
@@ -109,7 +112,8 @@ def _compiled(hand: Hand, target: Target, key: jax.ShapeDtypeStruct, given, dcfg
     k = (hand.spec, dcfg, n, str(shapes), sampler_res, jax.default_backend(), mesh)
     if k not in _COMPILED:
         compiled = _device_jit.lower(hand, target, key, given, cfg=dcfg, n=n, given_q=given_q,
-                                     sampler_params=sampler_params, sampler_res=sampler_res, mesh=mesh).compile()
+                                     sampler_params=sampler_params, sampler_res=sampler_res, mesh=mesh,
+                                     palm_root=palm_root).compile()
         # before anything is allocated: no out-of-memory traceback
         memory.check_fits(compiled, n, mesh.devices.flat[0])
         _COMPILED[k] = compiled
@@ -218,14 +222,16 @@ def compile_device(hand: Hand, target: Target, cfg: GraspConfig, given: jax.Arra
     params, res = None, None
     if given is None:
         params, res = samplers.sampler_params(cfg.sampler, hand, cfg.sampling, target.sdf.grid.dtype)
+    palm_root = None if given is not None else jnp.asarray(palm_centre_root(hand), hand.lower.dtype)
     mesh = device_mesh(cfg.devices)
     if mesh.size > 1:  # inputs committed to one device (the hand's, the SDF's) must be on all of the mesh's
-        hand, target, given, given_q, params = jax.device_put((hand, target, given, given_q, params),
-                                                              NamedSharding(mesh, P()))
+        hand, target, given, given_q, params, palm_root = jax.device_put(
+            (hand, target, given, given_q, params, palm_root), NamedSharding(mesh, P()))
     key0 = jax.ShapeDtypeStruct((2,), jnp.uint32)  # `jax.random.PRNGKey`'s: no device call per lookup
     t0 = time.perf_counter()
-    compiled = _compiled(hand, target, key0, given, dcfg, n, given_q, params, res, mesh)
-    return (lambda key: compiled(hand, target, key, given, given_q=given_q, sampler_params=params)), \
+    compiled = _compiled(hand, target, key0, given, dcfg, n, given_q, params, res, mesh, palm_root)
+    return (lambda key: compiled(hand, target, key, given, given_q=given_q, sampler_params=params,
+                                 palm_root=palm_root)), \
         time.perf_counter() - t0
 
 

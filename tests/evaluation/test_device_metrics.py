@@ -8,6 +8,7 @@ import scipy.spatial
 import trimesh
 
 from ffcgs_jax.evaluation import device_metrics as dm
+from ffcgs_jax.evaluation import epsilon_search
 from ffcgs_jax.evaluation import metrics
 from ffcgs_jax.evaluation.metrics import MetricsConfig, sphere_basis
 from ffcgs_jax.geometry import mesh_io, sdf
@@ -88,8 +89,8 @@ def test_epsilon_search_reaches_qhull_on_random_wrench_sets():
         if (e := metrics.epsilon_q1(w)) > 0:
             Ws.append(w.T)
             refs.append(e)
-    starts = jnp.asarray(sphere_basis(dm.EPS_STARTS).T)
-    eps = np.asarray(jax.jit(jax.vmap(lambda w: dm.search_epsilon(w, starts)))(jnp.asarray(np.stack(Ws))))
+    starts = jnp.asarray(sphere_basis(epsilon_search.EPS_STARTS).T)
+    eps = np.asarray(jax.jit(jax.vmap(lambda w: epsilon_search.search_epsilon(w, starts)))(jnp.asarray(np.stack(Ws))))
     refs = np.asarray(refs)
     assert (eps >= refs - 1e-12).all()
     assert np.mean(np.abs(eps - refs) <= 1e-9 * np.maximum(refs, 1)) >= 0.9
@@ -102,10 +103,10 @@ def test_ray_facet_returns_the_facet_the_ray_leaves_through():
     hull = scipy.spatial.ConvexHull(w)
     ds = rng.standard_normal((10, 6))
     ds /= np.linalg.norm(ds, axis=1, keepdims=True)
-    cold = jax.jit(jax.vmap(dm.ray_facet, (None, 0)))
+    cold = jax.jit(jax.vmap(epsilon_search.ray_facet, (None, 0)))
     normals, bases = cold(jnp.asarray(w.T), jnp.asarray(ds))
     # warm: each ray finished by dual pivots from the optimal basis of another ray (the walks' later steps)
-    warm, _ = jax.jit(jax.vmap(dm.ray_facet, (None, 0, 0)))(jnp.asarray(w.T), jnp.asarray(ds[::-1]), bases)
+    warm, _ = jax.jit(jax.vmap(epsilon_search.ray_facet, (None, 0, 0)))(jnp.asarray(w.T), jnp.asarray(ds[::-1]), bases)
     np.testing.assert_allclose(np.asarray(warm)[::-1], np.asarray(normals), atol=1e-9)
     for d, n in zip(ds, np.asarray(normals)):
         # a facet normal of the hull, and the ray's exit point lies on that facet's plane
