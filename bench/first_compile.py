@@ -53,7 +53,7 @@ def first_call(obj: str) -> tuple[fj.GraspSet, float]:
         lg.addHandler(log)
     jax.config.update("jax_log_compiles", True)
     t0 = time.perf_counter()
-    gs = fj.synthesize(fj.load_hand("svh"), obj)
+    gs = fj.synthesize(fj.load_hand("svh"), fj.load_mesh(obj))
     wall = time.perf_counter() - t0
     jax.config.update("jax_log_compiles", False)
     for lg in loggers:
