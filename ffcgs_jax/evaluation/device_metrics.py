@@ -40,7 +40,7 @@ from ffcgs_jax.evaluation.epsilon_search import EPS_STARTS, eps_tol, full_rank, 
 from ffcgs_jax.evaluation.metrics import MetricsConfig, sphere_basis
 from ffcgs_jax.geometry import sdf as sdf_mod
 from ffcgs_jax.geometry.triangles import closest_offset, dist2, orientation, solid_angles, tri_table
-from ffcgs_jax.synthesis import compile_clock, lp_jax, quality
+from ffcgs_jax.synthesis import compile_clock, lp_jax, quality, traced_store
 from ffcgs_jax.types import Array, Float
 
 _POINT_CHUNK = 4096  # fingertip points per brute-force pass (bounds the (points, triangles) work in flight)
@@ -323,9 +323,18 @@ def _evaluate_sdf(grid, contacts, q, lower, upper, centre, radius, cfg: MetricsC
 # the device back to back (a 200,000-face mesh is about 100 calls of a few microseconds' dispatch each).
 _start_jit = jax.jit(_start_mesh, keep_unused=True)  # committed where the contacts are, as a step's state
 _step_jit = jax.jit(_step_mesh)
-_finish_jit = jax.jit(_finish_mesh, static_argnames=("cfg",))
 _sdf_jit = jax.jit(_evaluate_sdf, static_argnames=("cfg",))
-_COMPILED: set = set()  # the argument signatures run once already: their executables are in jit's cache
+# the argument signatures run once already, each with the mesh evaluation's last step, compiled ahead (its trace
+# is most of the evaluation's compile time, and `traced_store` keeps it on disk with the compilation cache)
+_COMPILED: dict = {}
+
+
+def _finish(key, cfg: MetricsConfig, *args):
+    if _COMPILED.get(key) is None:
+        lowered, call = traced_store.lower("evaluate_mesh", functools.partial(_finish_mesh, cfg=cfg), args, cfg)
+        _COMPILED[key] = (lowered.compile(), call)
+    compiled, call = _COMPILED[key]
+    return call(compiled, *args)
 
 
 def _signature(x) -> tuple:
@@ -380,7 +389,7 @@ def compile_evaluate(surface, contacts, q, lower, upper, centre, radius, cfg: Me
             state = _start_jit(args[0])
             for chunk in surface.chunks:
                 state = _step_jit(state, chunk, args[0], surface.centre)
-            out = _finish_jit(state, surface.centre, surface.scale, surface.orient, *args, cfg=cfg)
+            out = _finish(key, cfg, state, surface.centre, surface.scale, surface.orient, *args)
         else:
             out = _sdf_jit(surface, *args, cfg=cfg)
         return {k: v[:b] for k, v in out.items()} if pad else out
@@ -394,5 +403,5 @@ def compile_evaluate(surface, contacts, q, lower, upper, centre, radius, cfg: Me
         if mesh and len(surface.chunks) == 1:  # a step's own state, as a later mesh's second chunk will pass it
             _step_jit(_step_jit(_start_jit(args[0]), surface.chunks[0], args[0], surface.centre), surface.chunks[0],
                       args[0], surface.centre)
-    _COMPILED.add(key)
+    _COMPILED.setdefault(key, None)
     return (lambda: first), seconds[0]

@@ -27,10 +27,10 @@ from ffcgs_jax.hand import kinematics as K
 from ffcgs_jax.hand.kinematics import Hand
 from ffcgs_jax.hand.sites import palm_centre_root
 from ffcgs_jax.synthesis import filters as F
-from ffcgs_jax.synthesis import compile_clock, fetch, memory, samplers, sharding
+from ffcgs_jax.synthesis import compile_clock, fetch, memory, samplers, sharding, traced_store
 from ffcgs_jax.synthesis.config import EnergyConfig, GraspConfig, OptimConfig
-from ffcgs_jax.synthesis.energy import Target, chosen, fingertip_contacts, make_target
-from ffcgs_jax.synthesis.optimize import OptResult, _optimize
+from ffcgs_jax.synthesis.energy import Target, Terms, chosen, fingertip_contacts, make_target
+from ffcgs_jax.synthesis.optimize import OptResult, Trace, _optimize
 
 
 class DeviceOut(NamedTuple):
@@ -98,26 +98,35 @@ def _descend_and_filter(hand: Hand, target: Target, poses: jax.Array, given_q: j
 
 
 device_mesh = sharding.device_mesh
-_device_jit = jax.jit(_device_part, static_argnames=("cfg", "n", "sampler_res", "mesh"))
 _COMPILED: dict = {}
+_CALLS: dict = {}  # how each of _COMPILED's executables takes its arguments (`traced_store.lower`)
+traced_store.register_outputs(DeviceOut, OptResult, Terms, Trace)
 
 
 def _compiled(hand: Hand, target: Target, key: jax.ShapeDtypeStruct, given, dcfg: DeviceConfig, n: int, given_q=None,
               sampler_params=None, sampler_res=None, mesh=None, palm_root=None):
     """Ahead-of-time compiled device part, cached like jit's own cache (AOT compiles bypass that cache), so that
-    compile time can be reported apart and a second object of the same grid size reuses the executable. A new
-    executable is checked against the device's free memory once, when compiled (`memory.check_fits` reads its
-    memory analysis, about 0.1 s: too slow for every call)."""
+    compile time can be reported apart and every later object reuses the executable: (compiled, call), run as
+    `call(compiled, hand, target, key, given, given_q, sampler_params, palm_root)`. A new executable is checked
+    against the device's free memory once, when compiled (`memory.check_fits` reads its memory analysis, about
+    0.1 s: too slow for every call). With the compilation cache on, the trace itself is kept on disk too
+    (`traced_store`)."""
     shapes = jax.tree.map(lambda x: (x.shape, x.dtype), (target, key, given, given_q, sampler_params))
     k = (hand.spec, dcfg, n, str(shapes), sampler_res, jax.default_backend(), mesh)
     if k not in _COMPILED:
-        compiled = _device_jit.lower(hand, target, key, given, cfg=dcfg, n=n, given_q=given_q,
-                                     sampler_params=sampler_params, sampler_res=sampler_res, mesh=mesh,
-                                     palm_root=palm_root).compile()
+        def part(hand, target, key, given, given_q, sampler_params, palm_root):
+            return _device_part(hand, target, key, given, dcfg, n, given_q, sampler_params, sampler_res, mesh,
+                                palm_root)
+
+        # host callbacks (the proxsuite LP) and programs over several devices cannot be stored
+        storable = mesh.size == 1 and dcfg.energy.lp_solver != "proxsuite"
+        lowered, call = traced_store.lower("device_part", part, (hand, target, key, given, given_q, sampler_params,
+                                                                  palm_root), (dcfg, n, sampler_res), storable)
+        compiled = lowered.compile()
         # before anything is allocated: no out-of-memory traceback
         memory.check_fits(compiled, n, mesh.devices.flat[0])
-        _COMPILED[k] = compiled
-    return _COMPILED[k]
+        _COMPILED[k], _CALLS[k] = compiled, call
+    return _COMPILED[k], _CALLS[k]
 
 
 @dataclasses.dataclass
@@ -229,9 +238,8 @@ def compile_device(hand: Hand, target: Target, cfg: GraspConfig, given: jax.Arra
             (hand, target, given, given_q, params, palm_root), NamedSharding(mesh, P()))
     key0 = jax.ShapeDtypeStruct((2,), jnp.uint32)  # `jax.random.PRNGKey`'s: no device call per lookup
     t0 = time.perf_counter()
-    compiled = _compiled(hand, target, key0, given, dcfg, n, given_q, params, res, mesh, palm_root)
-    return (lambda key: compiled(hand, target, key, given, given_q=given_q, sampler_params=params,
-                                 palm_root=palm_root)), \
+    compiled, call = _compiled(hand, target, key0, given, dcfg, n, given_q, params, res, mesh, palm_root)
+    return (lambda key: call(compiled, hand, target, key, given, given_q, params, palm_root)), \
         time.perf_counter() - t0
 
 

@@ -5,6 +5,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from ffcgs_jax.cli import jax_cache
@@ -34,3 +35,12 @@ def test_cli_fills_the_cache(tmp_path):
     r = _grasp(tmp_path, str(cache))
     assert r.returncode == 0, r.stderr[-2000:]
     assert cache.is_dir() and any(cache.iterdir())  # the synthesis executable was written
+    traces = sorted(p.name for p in (cache / "ffcgs-traced").iterdir())
+    assert [t.split("-")[0] for t in traces] == ["device_part", "evaluate_mesh"], traces
+    first = dict(np.load(tmp_path / "g.npz"))
+    r = _grasp(tmp_path, str(cache))  # a second process: both traces read back, nothing traced or stored anew
+    assert r.returncode == 0 and "warning" not in r.stderr, r.stderr[-2000:]
+    assert sorted(p.name for p in (cache / "ffcgs-traced").iterdir()) == traces
+    second = dict(np.load(tmp_path / "g.npz"))
+    for k in ("q", "wrist_pose", "E", "epsilon", "valid"):
+        np.testing.assert_array_equal(second[k], first[k], err_msg=k)
