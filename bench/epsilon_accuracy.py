@@ -26,14 +26,14 @@ from ffcgs_jax.geometry import mesh_io, sdf  # noqa: E402
 from ffcgs_jax.hand import kinematics as K  # noqa: E402
 from ffcgs_jax.synthesis.config import GraspConfig  # noqa: E402
 from ffcgs_jax.synthesis.energy import make_target  # noqa: E402
-from ffcgs_jax.synthesis.grasp import _metrics_config, synthesize  # noqa: E402
+from ffcgs_jax.synthesis.grasp import metrics_config, synthesize  # noqa: E402
 
 
 def compare(hand, name, mesh, n):
     cfg = GraspConfig(n=n)
     gs = synthesize(hand, mesh, cfg, name)
     target = make_target(sdf.build_sdf(mesh, cfg.sdf))  # the grid synthesize planned on (from the cache)
-    mcfg = _metrics_config(cfg)
+    mcfg = metrics_config(cfg)
     args = (gs["contacts"], gs["q"], np.asarray(hand.lower), np.asarray(hand.upper))
     centre, radius = np.asarray(target.centre), float(target.radius)
     t0 = time.perf_counter()

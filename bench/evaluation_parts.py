@@ -44,7 +44,7 @@ def timed(fn, repeats: int) -> tuple[float, float]:
 
 
 def parts(hand, mesh, target, out, cfg, repeats: int) -> dict[str, tuple[float, float]]:
-    mcfg = grasp._metrics_config(cfg)
+    mcfg = grasp.metrics_config(cfg)
     contacts, q = out.opt.final.contacts, out.opt.q
     b, c = contacts.shape[:2]
     flat = contacts.reshape(-1, 3)

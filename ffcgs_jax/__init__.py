@@ -35,6 +35,7 @@ _API = {
     "PhysicsConfig": ("ffcgs_jax.physics.config", "PhysicsConfig"),
     "FfcgsError": ("ffcgs_jax.errors", "FfcgsError"),
     "enable_compilation_cache": ("ffcgs_jax.cli.jax_cache", "enable"),
+    "clear_compiled": ("ffcgs_jax.synthesis.grasp", "clear_compiled"),
 }
 __all__ = ["__version__", *_API]
 
@@ -50,7 +51,7 @@ if TYPE_CHECKING:  # what the lazy names are, for type checkers and editors
     from ffcgs_jax.physics.runner import evaluate as evaluate_physics  # noqa: F401
     from ffcgs_jax.physics.validate import validate  # noqa: F401
     from ffcgs_jax.synthesis.config import EnergyConfig, GraspConfig, OptimConfig  # noqa: F401
-    from ffcgs_jax.synthesis.grasp import GraspSet, synthesize  # noqa: F401
+    from ffcgs_jax.synthesis.grasp import GraspSet, clear_compiled, synthesize  # noqa: F401
     from ffcgs_jax.synthesis.many import synthesize_many  # noqa: F401
 
 

@@ -56,16 +56,16 @@ def from_dict(cls: type[T], data: Any, where: str = "") -> T:
         if dataclasses.is_dataclass(hint):
             kwargs[name] = from_dict(hint, value, f"{where}{name}.")
         else:
-            kwargs[name] = _coerce(hint, value, where + name)
+            kwargs[name] = coerce(hint, value, where + name)
     obj = cls(**kwargs)
     check_all(obj)
     return obj
 
 
-def _coerce(hint: Any, value: Any, name: str) -> Any:
+def coerce(hint: Any, value: Any, name: str) -> Any:
     args = typing.get_args(hint)
     if type(None) in args and len(args) == 2:  # `X | None`: None stays, anything else must be an X
-        return None if value is None else _coerce(next(a for a in args if a is not type(None)), value, name)
+        return None if value is None else coerce(next(a for a in args if a is not type(None)), value, name)
     if hint is float and isinstance(value, int) and not isinstance(value, bool):
         return float(value)
     if hint in (int, float, str, bool) and (
@@ -79,7 +79,7 @@ def _coerce(hint: Any, value: Any, name: str) -> Any:
         items = args[:1] * len(value) if args[1:] == (...,) else args
         if len(items) != len(value):
             raise FfcgsError(f"config key {name} must be a list of {len(items)} values, got {value!r}")
-        return tuple(_coerce(t, v, f"{name}[{i}]") for i, (t, v) in enumerate(zip(items, value)))
+        return tuple(coerce(t, v, f"{name}[{i}]") for i, (t, v) in enumerate(zip(items, value)))
     return value
 
 

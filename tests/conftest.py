@@ -34,9 +34,6 @@ def _release_executables():
     module-scoped check keeps the executables that tests of one module share."""
     yield
     if _maps() > MAPS_LIMIT:
-        from ffcgs_jax.evaluation import device_metrics
-        from ffcgs_jax.synthesis import grasp
+        import ffcgs_jax
 
-        grasp._COMPILED.clear()
-        device_metrics._COMPILED.clear()
-        jax.clear_caches()
+        ffcgs_jax.clear_compiled()

@@ -115,6 +115,36 @@ def test_configs_live_beside_their_code():
         assert any(dataclasses.is_dataclass(v) and v.__module__ == mod.__name__ for v in vars(mod).values()), sub
 
 
+def private_uses(name: str) -> list[str]:
+    """Private names (`_x`, not dunders) of other package modules that module `name` uses: imported by name, or read
+    as an attribute of a package module it imported."""
+    tree = ast.parse(MODULES[name].read_text())
+    private = lambda n: n.startswith("_") and not n.startswith("__")  # noqa: E731
+    modules, out = {}, []
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Import):
+            for a in node.names:
+                if a.name in MODULES and a.asname:
+                    modules[a.asname] = a.name
+        elif isinstance(node, ast.ImportFrom) and node.level == 0 and (node.module or "").startswith("ffcgs_jax"):
+            for a in node.names:
+                if f"{node.module}.{a.name}" in MODULES:
+                    modules[a.asname or a.name] = f"{node.module}.{a.name}"
+                elif private(a.name):
+                    out.append(f"{node.module}.{a.name}")
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Attribute) and isinstance(node.value, ast.Name) and node.value.id in modules \
+                and private(node.attr) and modules[node.value.id] != name:
+            out.append(f"{modules[node.value.id]}.{node.attr}")
+    return sorted(set(out))
+
+
+def test_private_uses_are_found():
+    assert private_uses("ffcgs_jax.synthesis.grasp") == []
+    tree = {m: private_uses(m) for m in MODULES}
+    assert not any(tree.values()), {m: u for m, u in tree.items() if u}
+
+
 def test_public_api_names_resolve():
     for name in ffcgs_jax.__all__:
         assert getattr(ffcgs_jax, name) is not None, name

@@ -58,7 +58,7 @@ def time_synthesis(hand, target, cfg, repeats: int, surface=None) -> Row:
     import jax
 
     from ffcgs_jax.evaluation import device_metrics
-    from ffcgs_jax.synthesis.grasp import _metrics_config, compile_device
+    from ffcgs_jax.synthesis.grasp import metrics_config, compile_device
 
     run, compile_s = compile_device(hand, target, cfg)
     times, out = [], None
@@ -72,7 +72,7 @@ def time_synthesis(hand, target, cfg, repeats: int, surface=None) -> Row:
         t0 = time.perf_counter()
         o = run(jax.random.PRNGKey(i))
         jax.block_until_ready(device_metrics.evaluate(surface, o.opt.final.contacts, o.opt.q, hand.lower, hand.upper,
-                                                      target.centre, target.radius, _metrics_config(cfg)))
+                                                      target.centre, target.radius, metrics_config(cfg)))
         with_eval.append(time.perf_counter() - t0)
     return Row(cfg.energy.lp_solver, cfg.n, devices, compile_s, statistics.median(times[1:]), min(times[1:]),
                float(np.mean(np.asarray(out.opt.lp_ok))), statistics.median(with_eval[1:]) if with_eval else None)

@@ -20,7 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from ffcgs_jax import files
-from ffcgs_jax.config import _coerce, check_all, split_config_arg, with_overrides
+from ffcgs_jax.config import coerce, check_all, split_config_arg, with_overrides
 from ffcgs_jax.errors import FfcgsError
 from ffcgs_jax.learning.config import TrainConfig
 
@@ -72,7 +72,7 @@ def parse_sweep(cfg: TrainConfig, specs: list[str]) -> list[tuple[str, list]]:
         hint = _field(cfg, key)
         conv = {bool: lambda v: {"true": True, "false": False}[v.lower()], int: int, float: float, str: str}[hint]
         try:
-            vals = [_coerce(hint, conv(v), key) for v in values.split(",") if v != ""]
+            vals = [coerce(hint, conv(v), key) for v in values.split(",") if v != ""]
         except (ValueError, KeyError):
             raise FfcgsError(f"sweep values of {key} must be {hint.__name__}s, got {values!r}") from None
         if not vals:

@@ -329,6 +329,11 @@ _sdf_jit = jax.jit(_evaluate_sdf, static_argnames=("cfg",))
 _COMPILED: dict = {}
 
 
+def clear_compiled() -> None:
+    """Forget the evaluation's compiled executables: the next evaluation compiles (or loads) them again."""
+    _COMPILED.clear()
+
+
 def _finish(key, cfg: MetricsConfig, *args):
     if _COMPILED.get(key) is None:
         lowered, call = traced_store.lower("evaluate_mesh", functools.partial(_finish_mesh, cfg=cfg), args, cfg)

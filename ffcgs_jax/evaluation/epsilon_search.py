@@ -40,7 +40,7 @@ def _simplex(W, s, d, phase: int, basis, Binv, max_iter: int):
     """Pivots of the revised simplex on min c.x, [W | diag(s)] x = d, x >= 0 from a feasible `basis` with inverse
     `Binv`: phase 1 prices the 6 artificial columns diag(s) at 1 and the wrenches at 0, phase 2 the wrenches at 1,
     and there the artificials never enter; a basic one (left at level 0 by phase 1) leaves at the first pivot whose
-    column has a non-zero entry in its row. Dantzig's rule, Bland's after `lp_jax._BLAND_AFTER` degenerate pivots, the
+    column has a non-zero entry in its row. Dantzig's rule, Bland's after `lp_jax.BLAND_AFTER` degenerate pivots, the
     inverse refreshed every `_PIVOTS_PER_REFRESH` (`lp_jax.inverse`).
 
     Written with one-hot selections, elementwise products and sums instead of gathers, scatters, matrix products
@@ -48,7 +48,7 @@ def _simplex(W, s, d, phase: int, basis, Binv, max_iter: int):
     products and LU factorisations are each a library call (`synthesis.lp_jax` says the same of its pivots)."""
     n = W.shape[1]
     dt = W.dtype
-    tol = lp_jax._tol(dt)  # the Q-distance simplex's pivot tolerance: the same LPs' scale
+    tol = lp_jax.pivot_tol(dt)  # the Q-distance simplex's pivot tolerance: the same LPs' scale
     cols = jnp.arange(n + 6)
     cost = jnp.where(cols < n, 0.0 if phase == 1 else 1.0, 1.0 if phase == 1 else 0.0).astype(dt)
     enter_ok = jnp.ones(n + 6, bool) if phase == 1 else cols < n
@@ -69,7 +69,7 @@ def _simplex(W, s, d, phase: int, basis, Binv, max_iter: int):
         in_basis = jnp.any(basis[:, None] == cols[None, :], axis=0)
         r = jnp.where(in_basis | ~enter_ok, 0.0, cost - priced)
         neg = r < -tol
-        enter = jnp.where(degenerate >= lp_jax._BLAND_AFTER, jnp.argmax(neg), jnp.argmin(r))
+        enter = jnp.where(degenerate >= lp_jax.BLAND_AFTER, jnp.argmax(neg), jnp.argmin(r))
         u = jnp.sum(Binv * column(enter)[None, :], axis=1)
         stuck = (basis >= n) & (phase == 2) & (jnp.abs(u) > tol)
         ratio = jnp.where(stuck, 0.0, jnp.where(u > tol, xB / jnp.where(u > tol, u, 1.0), jnp.inf))
@@ -130,7 +130,7 @@ def _dual_simplex(W, s, d, basis, Binv, max_iter: int):
     from or one near it, so a few pivots replace a cold two-phase solve (bench/RESULTS.md, "End-to-end speed")."""
     n = W.shape[1]
     dt = W.dtype
-    tol = lp_jax._tol(dt)
+    tol = lp_jax.pivot_tol(dt)
     cols = jnp.arange(n + 6)
     six = jnp.arange(6)
 

@@ -59,7 +59,7 @@ class GradientSDF(NamedTuple):
 # ----------------------------------------------------------------------------------------------------------------
 
 
-def _grid_frame(bounds: np.ndarray, cfg: SDFConfig) -> tuple[np.ndarray, float]:
+def grid_frame(bounds: np.ndarray, cfg: SDFConfig) -> tuple[np.ndarray, float]:
     """Origin and voxel size of the cube grid around an axis-aligned box `bounds` (2, 3).
 
     The cube is centred on the box centre. Its side is the box's largest extent L plus a margin
@@ -132,7 +132,7 @@ def build_sdf(
         _cache.move_to_end(key)
         return _cache[key]
     flat = verts[faces].reshape(-1, 3)
-    origin, voxel = _grid_frame(np.stack([flat.min(0), flat.max(0)]), cfg)
+    origin, voxel = grid_frame(np.stack([flat.min(0), flat.max(0)]), cfg)
     if builder == "device":
         grid = sdf_device.gradient_grid(verts, faces, origin, voxel, cfg.res)
     else:

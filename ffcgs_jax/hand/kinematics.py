@@ -291,7 +291,8 @@ def _pose(pos, quat) -> np.ndarray:
     return T
 
 
-def _hand_geoms(m: mujoco.MjModel) -> list[int]:
+def hand_geoms(m: mujoco.MjModel) -> list[int]:
+    """Ids of the hand's collision geoms: on a body other than the world, colliding with something."""
     return [g for g in range(m.ngeom) if m.geom_bodyid[g] != 0 and (m.geom_contype[g] or m.geom_conaffinity[g])]
 
 
@@ -304,7 +305,7 @@ def _collision_spheres(m: mujoco.MjModel) -> tuple[np.ndarray, np.ndarray, np.nd
     Other geom types use their bounding box.
     """
     body, pos, rad = [], [], []
-    for g in _hand_geoms(m):
+    for g in hand_geoms(m):
         t, size = mujoco.mjtGeom(int(m.geom_type[g])), m.geom_size[g]
         if t == mujoco.mjtGeom.mjGEOM_SPHERE:
             local, r = np.zeros((1, 3)), size[0]
@@ -352,7 +353,7 @@ def _box_vertices(m: mujoco.MjModel, root_inv: np.ndarray, qpos: np.ndarray) -> 
     mujoco.mj_kinematics(m, d)
     signs = np.array(np.meshgrid([-1, 1], [-1, 1], [-1, 1], indexing="ij")).reshape(3, -1).T
     out = []
-    for g in _hand_geoms(m):
+    for g in hand_geoms(m):
         local = m.geom_aabb[g, :3] + signs * m.geom_aabb[g, 3:]
         out.append(local @ d.geom_xmat[g].reshape(3, 3).T + d.geom_xpos[g])
     v = np.concatenate(out)

@@ -30,7 +30,7 @@ from ffcgs_jax.synthesis import filters as F
 from ffcgs_jax.synthesis import compile_clock, fetch, memory, samplers, sharding, traced_store
 from ffcgs_jax.synthesis.config import EnergyConfig, GraspConfig, OptimConfig
 from ffcgs_jax.synthesis.energy import Target, Terms, chosen, fingertip_contacts, make_target
-from ffcgs_jax.synthesis.optimize import OptResult, Trace, _optimize
+from ffcgs_jax.synthesis.optimize import OptResult, Trace, descend
 
 
 class DeviceOut(NamedTuple):
@@ -73,7 +73,7 @@ def _device_part(hand: Hand, target: Target, key: jax.Array, given: jax.Array | 
 
 def _descend_and_filter(hand: Hand, target: Target, poses: jax.Array, given_q: jax.Array | None,
                         cfg: DeviceConfig) -> DeviceOut:
-    opt = _optimize(hand, target, poses, cfg.energy, cfg.optim, given_q)
+    opt = descend(hand, target, poses, cfg.energy, cfg.optim, given_q)
     poses = opt.wrist_pose
     tips = jnp.moveaxis(opt.trace.tips, 1, 0)  # (B, T+1, C, 3)
     # one kinematics pass for the final filters: each pass is a large graph to trace and compile
@@ -101,6 +101,15 @@ device_mesh = sharding.device_mesh
 _COMPILED: dict = {}
 _CALLS: dict = {}  # how each of _COMPILED's executables takes its arguments (`traced_store.lower`)
 traced_store.register_outputs(DeviceOut, OptResult, Terms, Trace)
+
+
+def clear_compiled() -> None:
+    """Drop every executable the package holds compiled (the device part's, the evaluation's) and JAX's own caches:
+    their memory comes back, and the next call compiles again, or loads from the disk cache where it is on."""
+    _COMPILED.clear()
+    _CALLS.clear()
+    device_metrics.clear_compiled()
+    jax.clear_caches()
 
 
 def _compiled(hand: Hand, target: Target, key: jax.ShapeDtypeStruct, given, dcfg: DeviceConfig, n: int, given_q=None,
@@ -258,7 +267,7 @@ def _prepare_evaluation(hand, surface, target, cfg, out: DeviceOut, compile: boo
     """(`run()` of the device evaluation of `out`'s grasps on `surface` (`_surface`), seconds spent compiling it);
     `compile` False: (None, 0.0) unless an earlier call compiled it (`device_metrics.compile_evaluate`)."""
     return device_metrics.compile_evaluate(surface, out.opt.final.contacts, out.opt.q, hand.lower, hand.upper,
-                                           target.centre, target.radius, _metrics_config(cfg), compile=compile)
+                                           target.centre, target.radius, metrics_config(cfg), compile=compile)
 
 
 def _finish(hand, target, cfg, out: DeviceOut, evaluate, synthesis_s, object_name) -> GraspSet:
@@ -321,7 +330,7 @@ def _joint_names(spec) -> np.ndarray:
     return np.array([mujoco.mj_id2name(m, mujoco.mjtObj.mjOBJ_JOINT, j) for j in range(m.njnt)])
 
 
-def _metrics_config(cfg: GraspConfig) -> metrics.MetricsConfig:
+def metrics_config(cfg: GraspConfig) -> metrics.MetricsConfig:
     e = cfg.energy
     return metrics.MetricsConfig(mu=e.mu, cone_edges=e.cone_edges, d0=e.d0, a_c=e.a_c, a_q=e.a_q,
                                  basis_size=e.basis_size, contact_tol=cfg.contact_tol)
@@ -335,7 +344,7 @@ def check_on_mesh(hand: Hand, mesh: trimesh.Trimesh, gs: GraspSet, grid: sdf_mod
     target = make_target(grid)
     dtype = target.sdf.grid.dtype
     ev = device_metrics.evaluate(_surface(mesh), jnp.asarray(gs["contacts"], dtype), jnp.asarray(gs["q"], dtype),
-                                 hand.lower, hand.upper, target.centre, target.radius, _metrics_config(gs.config))
+                                 hand.lower, hand.upper, target.centre, target.radius, metrics_config(gs.config))
     ev = fetch.device_get(ev)
     return {f"{k}_true": np.asarray(ev[k]) for k in ("epsilon", "force_closure", "contact_dist", "n_contacts")}
 

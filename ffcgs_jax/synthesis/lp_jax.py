@@ -29,7 +29,7 @@ was tried: fewer pivots on average, but a longer worst case, and a batch pivots 
 (H100, B = 8192: 24k against 42k grasps/s).
 
 Pivoting: Dantzig's rule (most negative reduced cost), switching to Bland's rule (lowest index) after
-`_BLAND_AFTER` consecutive degenerate pivots, which rules out cycling. A solve that has not reached optimality
+`BLAND_AFTER` consecutive degenerate pivots, which rules out cycling. A solve that has not reached optimality
 within `max_iter` pivots returns ok = False (callers mask it, as for the host path).
 """
 
@@ -46,7 +46,7 @@ from ffcgs_jax.synthesis import lp_pallas
 from ffcgs_jax.types import Array, Bool, Float, Int
 
 MAX_ITER = 100  # pivots; instances of this size took at most about 40 (tests/synthesis/test_lp_jax.py)
-_BLAND_AFTER = 8
+BLAND_AFTER = 8
 # Pivots per while-loop trip (the inverse is refreshed after each trip). With XLA pivots on a GPU each trip cost a
 # device-to-host check of the loop condition and a dozen launches: 8 measured 46 ms against 51 ms for 4 and 56 ms
 # for 2 (H100, 32 grasps x 50 steps). On a CPU the pivots a finished batch still runs are wasted work, so fewer.
@@ -59,7 +59,7 @@ def _pivots_per_trip() -> int:
     return _PIVOTS_PER_TRIP_CPU if jax.default_backend() == "cpu" else _PIVOTS_PER_TRIP_GPU
 
 
-def _tol(dtype) -> float:
+def pivot_tol(dtype) -> float:
     """Optimality / pivot tolerance: a few hundred ulps of the O(1) entries."""
     return 1e-9 if jnp.finfo(dtype).bits == 64 else 1e-5
 
@@ -132,11 +132,11 @@ def solve(W: Float[Array, "6 N"], U: Float[Array, "6 K"], axes: np.ndarray, max_
     "none"."""
     dt = W.dtype
     K, N = U.shape[1], W.shape[1]
-    tol = _tol(dt)
+    tol = pivot_tol(dt)
     if kernel_for(jax.default_backend()) == "pallas":
         basis, Binv, ok, pivots = lp_pallas.solve_basis(
             W, U, axes, max_iter, jnp.full(7, -1, jnp.int32) if basis0 is None else basis0, tol,
-            _pivots_per_trip(), _BLAND_AFTER, interpret=jax.default_backend() == "cpu")
+            _pivots_per_trip(), BLAND_AFTER, interpret=jax.default_backend() == "cpu")
         return _solution(basis, Binv, ok, pivots, K, N)
     A = jnp.concatenate([jnp.concatenate([U.astype(dt), -W], 1),
                          jnp.concatenate([jnp.zeros((1, K), dt), jnp.ones((1, N), dt)], 1)], 0)
@@ -162,7 +162,7 @@ def solve(W: Float[Array, "6 N"], U: Float[Array, "6 K"], axes: np.ndarray, max_
         d = reduced_costs(basis, Binv)
         neg = d < -tol
         optimal = ~jnp.any(neg)
-        enter = jnp.where(degenerate >= _BLAND_AFTER, jnp.argmax(neg), jnp.argmin(d))
+        enter = jnp.where(degenerate >= BLAND_AFTER, jnp.argmax(neg), jnp.argmin(d))
         u = Binv @ A[:, enter]
         pos = u > tol
         ratio = jnp.where(pos, xB / jnp.where(pos, u, 1.0), jnp.inf)

@@ -58,8 +58,9 @@ def twist_pose(H: Float[Array, "4 4"], xi: Float[Array, " 6"]) -> Float[Array, "
     return H @ D
 
 
-def _optimize(hand: Hand, target: Target, poses, energy_cfg: EnergyConfig, optim_cfg: OptimConfig,
+def descend(hand: Hand, target: Target, poses, energy_cfg: EnergyConfig, optim_cfg: OptimConfig,
               q_start=None) -> OptResult:
+    """`optimize` unjitted, for callers that trace it inside their own compiled function (`synthesis.grasp`)."""
     B = poses.shape[0]
     T = optim_cfg.iters
     wrist = optim_cfg.wrist
@@ -119,7 +120,7 @@ def _optimize(hand: Hand, target: Target, poses, energy_cfg: EnergyConfig, optim
     return OptResult(q, poses, final, iters, converged, lp_ok & final.lp_ok, trace)
 
 
-optimize = jax.jit(_optimize, static_argnames=("energy_cfg", "optim_cfg"))
+optimize = jax.jit(descend, static_argnames=("energy_cfg", "optim_cfg"))
 optimize.__doc__ = """Optimise the channels of B wrist poses (B, 4, 4) on one target; see the module docstring.
 
 Args:

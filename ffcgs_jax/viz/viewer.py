@@ -202,7 +202,7 @@ def show(data: dict, hand: K.Hand, mesh: trimesh.Trimesh, host: str = "127.0.0.1
     server.scene.add_box("/table", (235, 235, 235), (4 * span, 4 * span, 0.002),
                          position=(*(lo[:2] + hi[:2]) / 2, lo[2] - 0.001), opacity=0.6)
     m = hand.spec.mj_model()
-    geoms = K._hand_geoms(m)
+    geoms = K.hand_geoms(m)
     handles = {"geoms": [], "wrist": server.scene.add_frame("/grasp/wrist", axes_length=0.03, axes_radius=0.002)}
     for g in geoms:
         gm = _geom_mesh(m, g)

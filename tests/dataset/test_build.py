@@ -651,7 +651,7 @@ def test_start_channels_without_rank_promotion(hand):
     target = make_target(sdf_mod.build_sdf(mesh_io.load_mesh("box"), SDFConfig(res=16)))
     poses = jnp.asarray(np.repeat(np.eye(4)[None], 2, 0))
     # tracing is enough (the clip is the first thing the descent does); nothing is compiled
-    out = jax.eval_shape(lambda p, q: optimize._optimize(hand, target, p, EnergyConfig(), OptimConfig(iters=1), q),
+    out = jax.eval_shape(lambda p, q: optimize.descend(hand, target, p, EnergyConfig(), OptimConfig(iters=1), q),
                          poses, jnp.zeros((2, hand.n_channels)))
     assert out.q.shape == (2, hand.n_channels)
 

@@ -23,7 +23,7 @@ YCB = SHARED / "objects" / "ycb"
 
 def _frame(mesh: trimesh.Trimesh, res: int):
     flat = np.asarray(mesh.triangles).reshape(-1, 3)
-    return sdf._grid_frame(np.stack([flat.min(0), flat.max(0)]), SDFConfig(res=res))
+    return sdf.grid_frame(np.stack([flat.min(0), flat.max(0)]), SDFConfig(res=res))
 
 
 @jax.jit
