@@ -28,6 +28,9 @@ _API = {
     "evaluate_physics": ("ffcgs_jax.physics.runner", "evaluate"),
     "validate": ("ffcgs_jax.physics.validate", "validate"),
     "GraspSet": ("ffcgs_jax.synthesis.grasp", "GraspSet"),
+    "load_grasps": ("ffcgs_jax.synthesis.grasp", "load_grasps"),
+    "save_grasps": ("ffcgs_jax.synthesis.grasp", "save_grasps"),
+    "load_config": ("ffcgs_jax.synthesis.config", "load_config"),
     "GraspConfig": ("ffcgs_jax.synthesis.config", "GraspConfig"),
     "OptimConfig": ("ffcgs_jax.synthesis.config", "OptimConfig"),
     "EnergyConfig": ("ffcgs_jax.synthesis.config", "EnergyConfig"),
@@ -50,8 +53,8 @@ if TYPE_CHECKING:  # what the lazy names are, for type checkers and editors
     from ffcgs_jax.physics.config import PhysicsConfig  # noqa: F401
     from ffcgs_jax.physics.runner import evaluate as evaluate_physics  # noqa: F401
     from ffcgs_jax.physics.validate import validate  # noqa: F401
-    from ffcgs_jax.synthesis.config import EnergyConfig, GraspConfig, OptimConfig  # noqa: F401
-    from ffcgs_jax.synthesis.grasp import GraspSet, clear_compiled, synthesize  # noqa: F401
+    from ffcgs_jax.synthesis.config import EnergyConfig, GraspConfig, OptimConfig, load_config  # noqa: F401
+    from ffcgs_jax.synthesis.grasp import GraspSet, clear_compiled, load_grasps, save_grasps, synthesize  # noqa: F401
     from ffcgs_jax.synthesis.many import synthesize_many  # noqa: F401
 
 

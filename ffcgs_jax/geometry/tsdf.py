@@ -46,7 +46,8 @@ from ffcgs_jax.config import check_integer, check_range
 from ffcgs_jax.errors import FfcgsError
 from ffcgs_jax.geometry import depth_io
 from ffcgs_jax.geometry.config import SDFConfig
-from ffcgs_jax.geometry.sdf import GradientSDF, grid_frame
+from ffcgs_jax.geometry.sdf import GradientSDF
+from ffcgs_jax.geometry.sdf import grid_frame as sdf_grid_frame
 from ffcgs_jax.types import Array, Bool, Float
 
 _MIN_Z = 1e-6  # m: voxels this close to a camera's plane (or behind it) do not project
@@ -80,7 +81,7 @@ def grid_frame(bounds: Float[np.ndarray, "2 3"], res: int, margin: float = 0.0,
     """Origin (centre of voxel [0, 0, 0]) and voxel size of the res^3 cube around the box `bounds` (min and max
     corners, metres): centred on the box, side = its largest extent plus max(margin * extent, min_margin) on each
     side (as `sdf.build_sdf`)."""
-    return grid_frame(np.asarray(bounds, np.float64), SDFConfig(res=res, margin=margin, min_margin=min_margin))
+    return sdf_grid_frame(np.asarray(bounds, np.float64), SDFConfig(res=res, margin=margin, min_margin=min_margin))
 
 
 # ----------------------------------------------------------------------------------------------------------------

@@ -5,7 +5,7 @@ pipeline's `GraspConfig`, which nests them with the SDF's.
 import dataclasses
 import math
 
-from ffcgs_jax.config import SEED_MAX, check_integer, check_range
+from ffcgs_jax.config import SEED_MAX, check_integer, check_range, from_dict, read_toml
 from ffcgs_jax.errors import FfcgsError
 from ffcgs_jax.geometry.config import SDFConfig
 
@@ -256,3 +256,17 @@ class GraspConfig:
         check_range("squeeze_angle", self.squeeze_angle, 0.0, 3.0)
         check_integer("devices", self.devices, 0, 4096)
         check_integer("seed", self.seed, 0, SEED_MAX)
+
+
+def load_config(path) -> GraspConfig:
+    """A preset TOML (`configs/*.toml`, what `ffcgs grasp --config` reads) as a GraspConfig: its [grasp] tables, or,
+    in a file without one, its GraspConfig tables ([energy], [optim], [sdf], ...). Unknown keys and out-of-range
+    values are refused as on the command line."""
+    data = read_toml(path)
+    if "grasp" in data:
+        return from_dict(GraspConfig, data["grasp"], "grasp.")
+    fields = {f.name for f in dataclasses.fields(GraspConfig)}
+    if data and set(data) <= fields:
+        return from_dict(GraspConfig, data)
+    raise FfcgsError(f"config file {path} has no [grasp] table (its tables: {', '.join(sorted(data)) or 'none'}): "
+                     f"it configures another command")

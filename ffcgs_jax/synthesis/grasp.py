@@ -8,7 +8,10 @@ compiled function on the same device, and both results come back to the host in 
 
 import dataclasses
 import functools
+import json
 import time
+import warnings
+from pathlib import Path
 from typing import NamedTuple
 
 import jax
@@ -20,6 +23,7 @@ from jax.sharding import Mesh, NamedSharding
 from jax.sharding import PartitionSpec as P
 
 from ffcgs_jax.config import check_all
+from ffcgs_jax.config import from_dict as config_from_dict
 from ffcgs_jax.errors import FfcgsError
 from ffcgs_jax.evaluation import device_metrics, metrics, ranking, score
 from ffcgs_jax.geometry import sdf as sdf_mod
@@ -27,7 +31,7 @@ from ffcgs_jax.hand import kinematics as K
 from ffcgs_jax.hand.kinematics import Hand
 from ffcgs_jax.hand.sites import palm_centre_root
 from ffcgs_jax.synthesis import filters as F
-from ffcgs_jax.synthesis import compile_clock, fetch, memory, samplers, sharding, traced_store
+from ffcgs_jax.synthesis import compile_clock, fetch, grasp_io, memory, samplers, sharding, traced_store
 from ffcgs_jax.synthesis.config import EnergyConfig, GraspConfig, OptimConfig
 from ffcgs_jax.synthesis.energy import Target, Terms, chosen, fingertip_contacts, make_target
 from ffcgs_jax.synthesis.optimize import OptResult, Trace, descend
@@ -165,6 +169,28 @@ class GraspSet:
         bench/RESULTS.md, "Grasp quality"); `score` is the calibrated chance of passing, for comparing grasps across
         objects and for thresholds."""
         return ranking.ranked(self.arrays)
+
+
+def save_grasps(gs: GraspSet, path) -> None:
+    """Write `gs` to a grasp .npz file (its arrays, object name and config; not the per-iteration trace), as
+    `ffcgs grasp --out` does: atomically, no pickle."""
+    grasp_io.save_npz(gs, path)
+
+
+def load_grasps(path) -> GraspSet:
+    """A grasp .npz file (`save_grasps`, `ffcgs grasp --out`) as a GraspSet, its arrays checked (one line naming the
+    file and the problem otherwise). The config comes back as written; a file from a version whose config no longer
+    parses keeps GraspConfig's defaults, with a warning. The trace is not stored: `trace` is empty."""
+    arrays = grasp_io.load_npz(path)
+    name = str(arrays.pop("object_name", Path(path).stem))
+    cfg = GraspConfig()
+    if "config_json" in arrays:
+        try:
+            cfg = config_from_dict(GraspConfig, json.loads(str(arrays.pop("config_json"))))
+        except (FfcgsError, ValueError) as e:
+            warnings.warn(f"{path}: its config does not parse here ({e}); GraspConfig's defaults stand in",
+                          stacklevel=2)
+    return GraspSet(arrays, {}, cfg, name)
 
 
 def synthesize(hand: Hand, mesh: trimesh.Trimesh | sdf_mod.GradientSDF, cfg: GraspConfig = GraspConfig(),
