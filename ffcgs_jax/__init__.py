@@ -39,6 +39,8 @@ _API = {
     "FfcgsError": ("ffcgs_jax.errors", "FfcgsError"),
     "enable_compilation_cache": ("ffcgs_jax.cli.jax_cache", "enable"),
     "clear_compiled": ("ffcgs_jax.synthesis.grasp", "clear_compiled"),
+    "plot_grasps": ("ffcgs_jax.viz.grasp_plot", "grasps_image"),
+    "show": ("ffcgs_jax.viz.viewer", "show_grasps"),
 }
 __all__ = ["__version__", *_API]
 
@@ -56,6 +58,8 @@ if TYPE_CHECKING:  # what the lazy names are, for type checkers and editors
     from ffcgs_jax.synthesis.config import EnergyConfig, GraspConfig, OptimConfig, load_config  # noqa: F401
     from ffcgs_jax.synthesis.grasp import GraspSet, clear_compiled, load_grasps, save_grasps, synthesize  # noqa: F401
     from ffcgs_jax.synthesis.many import synthesize_many  # noqa: F401
+    from ffcgs_jax.viz.grasp_plot import grasps_image as plot_grasps  # noqa: F401
+    from ffcgs_jax.viz.viewer import show_grasps as show  # noqa: F401
 
 
 def __getattr__(name: str):

@@ -348,7 +348,7 @@ def run_grasp(cmd: GraspCmd) -> int:
 
         files.commit_outputs()  # the view is served until Ctrl-C, which ends the process at once
 
-        serve(viewer.show_grasps(gs, hand, mesh if mesh is not None else fused.mesh), 0.0)
+        serve(viewer.show_grasps(hand, mesh if mesh is not None else fused.mesh, gs), 0.0)
     return 0
 
 

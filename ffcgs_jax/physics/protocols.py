@@ -5,11 +5,11 @@ drives a backend (`backend.Simulator`) through them and applies the success rule
 DexGraspBench's protocols (`dexgraspbench`, described there): `grasp_and_squeeze` and `bench_push`.
 """
 
-import math
 from collections.abc import Callable
 from typing import Any
 
 import numpy as np
+import scipy.stats
 
 from ffcgs_jax.errors import FfcgsError
 from ffcgs_jax.physics import dexgraspbench as dgb
@@ -31,14 +31,12 @@ def result_key(protocol: str, field: str) -> str:
 
 
 
-def wilson(successes: int, n: int, z: float = 1.959963984540054) -> tuple[float, float]:
-    """Wilson score interval of a binomial proportion (95 % by default); (0, 1) when n = 0."""
+def wilson(successes: int, n: int, confidence: float = 0.95) -> tuple[float, float]:
+    """Wilson score interval of a binomial proportion (SciPy's `binomtest(...).proportion_ci`); (0, 1) when n = 0."""
     if n == 0:
         return 0.0, 1.0
-    p = successes / n
-    centre = (p + z * z / (2 * n)) / (1 + z * z / n)
-    half = z * math.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / (1 + z * z / n)
-    return max(0.0, centre - half), min(1.0, centre + half)
+    ci = scipy.stats.binomtest(int(successes), int(n)).proportion_ci(confidence_level=confidence, method="wilson")
+    return max(0.0, float(ci.low)), min(1.0, float(ci.high))
 
 
 

@@ -166,8 +166,9 @@ def free_port() -> int:
         return s.getsockname()[1]
 
 
-def show_grasps(gs, hand: K.Hand, mesh: trimesh.Trimesh, **kw) -> GraspView:
-    """`show` for a `synthesis.grasp.GraspSet` (what `synthesize` returns), e.g. in a notebook."""
+def show_grasps(hand: K.Hand, mesh: trimesh.Trimesh, gs, **kw) -> GraspView:
+    """`show` for a `synthesis.grasp.GraspSet` (what `synthesize` returns), e.g. in a notebook: `fj.show`, its
+    arguments in `synthesize`'s order."""
     return show({**gs.arrays, "config_json": json.dumps(dataclasses.asdict(gs.config))}, hand, mesh, **kw)
 
 
