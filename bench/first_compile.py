@@ -9,7 +9,7 @@ seconds of each stage per executable (the largest first), their sums and the num
 `ffcgs grasp` pays before its first grasp. Part 2 compiles the epsilon search of the device evaluation
 (`evaluation.epsilon_search`) over the grasps of part 1 twice: with the simplex pivots of a trip unrolled (the GPU
 default) and rolled in a loop (the CPU's form), and prints compile seconds and the median of `--repeats` warm
-calls of each. On a CPU both rows are the rolled form.
+calls of each (`search_epsilon(..., unroll=...)`, on any backend).
 """
 
 import argparse
@@ -94,8 +94,7 @@ def pivots(gs: fj.GraspSet, obj: str, repeats: int) -> None:
           "|---|---|---|---|")
     ref = None
     for unroll in (True, False):
-        epsilon_search.GPU_UNROLL = unroll
-        fn = jax.jit(jax.vmap(lambda w: epsilon_search.search_epsilon(w, starts)))
+        fn = jax.jit(jax.vmap(lambda w, unroll=unroll: epsilon_search.search_epsilon(w, starts, unroll=unroll)))
         t0 = time.perf_counter()
         eps = np.asarray(jax.block_until_ready(fn(W)))
         first = time.perf_counter() - t0
@@ -108,7 +107,6 @@ def pivots(gs: fj.GraspSet, obj: str, repeats: int) -> None:
         same = np.mean(np.isclose(eps, ref, rtol=1e-5, atol=1e-7))
         label = "unrolled (GPU default)" if unroll else "rolled (CPU form)"
         print(f"| {label} | {first:.2f} | {1e3 * statistics.median(times):.2f} | {same:.0%} |")
-    epsilon_search.GPU_UNROLL = True
 
 
 def main() -> None:

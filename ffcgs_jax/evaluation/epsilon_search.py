@@ -18,9 +18,6 @@ EPS_WALK = 5  # steps of each walk (walks measured converged within 6)
 _MAX_PIVOTS = 64  # per simplex phase; the 6-row LPs here take about 10
 _PIVOTS_PER_REFRESH = 4
 _EXACT = jax.lax.Precision.HIGHEST
-# On a GPU the pivots of a while-loop trip are unrolled (see `_pivot_loop`); False rolls them as on a CPU.
-# bench/first_compile.py measures both: compile seconds against the warm call.
-GPU_UNROLL = True
 
 
 def rank_tol(dtype) -> float:
@@ -36,7 +33,7 @@ def eps_tol(dtype) -> tuple[float, float]:
     return (1e-12, 1e-9) if jnp.dtype(dtype) == jnp.float64 else (1e-6, 1e-6)
 
 
-def _simplex(W, s, d, phase: int, basis, Binv, max_iter: int):
+def _simplex(W, s, d, phase: int, basis, Binv, max_iter: int, unroll: bool | None = None):
     """Pivots of the revised simplex on min c.x, [W | diag(s)] x = d, x >= 0 from a feasible `basis` with inverse
     `Binv`: phase 1 prices the 6 artificial columns diag(s) at 1 and the wrenches at 0, phase 2 the wrenches at 1,
     and there the artificials never enter; a basic one (left at level 0 by phase 1) leaves at the first pivot whose
@@ -89,20 +86,21 @@ def _simplex(W, s, d, phase: int, basis, Binv, max_iter: int):
         return basis, jnp.where(smallest > 0, fresh, Binv), it, degenerate, done
 
     state = (basis, Binv, jnp.zeros((), jnp.int32), jnp.zeros((), jnp.int32), jnp.zeros((), bool))
-    basis, Binv, _, _, _ = _pivot_loop(pivot, refresh, state, max_iter)
+    basis, Binv, _, _, _ = _pivot_loop(pivot, refresh, state, max_iter, unroll)
     return basis, Binv
 
 
-def _pivot_loop(pivot, refresh, state, max_iter: int):
+def _pivot_loop(pivot, refresh, state, max_iter: int, unroll: bool | None = None):
     """Trips of pivots, the inverse refreshed after each, until the state's done flag (state[4]) or `max_iter`
-    pivots (state[2])."""
+    pivots (state[2]). `unroll`: the pivots of a trip unrolled (None: on a GPU only, see below)."""
+    unroll = jax.default_backend() != "cpu" if unroll is None else unroll
 
     def trip(state):
         # Each trip ends in a loop-condition check, a device-to-host sync on a GPU: there the pivots of a trip are
         # unrolled, twice as many. On a CPU a loop keeps one copy of the pivot: every kernel of an executable is
         # its own memory mapping there, and unrolled copies of a whole evaluation ran a long test process out of
         # mappings (vm.max_map_count) after a few dozen executables.
-        if jax.default_backend() == "cpu" or not GPU_UNROLL:
+        if not unroll:
             state = jax.lax.fori_loop(0, _PIVOTS_PER_REFRESH, lambda _, st: pivot(st), state)
         else:
             for _ in range(2 * _PIVOTS_PER_REFRESH):
@@ -120,7 +118,7 @@ def _columns(W, s, basis):
     return jnp.sum(W[:, :, None] * hot[None, :n, :], axis=1) + s[:, None] * hot[n:, :]
 
 
-def _dual_simplex(W, s, d, basis, Binv, max_iter: int):
+def _dual_simplex(W, s, d, basis, Binv, max_iter: int, unroll: bool | None = None):
     """Dual simplex pivots on phase 2 of `ray_facet`'s LP (min 1.x, [W | diag(s)] x = d, x >= 0, artificials never
     entering) from a basis optimal for another right-hand side: its duals y = B^-T c_B do not depend on d, so it stays
     dual feasible, and only the basic values B^-1 d may have turned negative. Each pivot takes the most negative basic
@@ -171,7 +169,7 @@ def _dual_simplex(W, s, d, basis, Binv, max_iter: int):
         return basis, jnp.where(smallest > 0, fresh, Binv), it, s, done
 
     state = (basis, Binv, jnp.zeros((), jnp.int32), s, jnp.zeros((), bool))
-    basis, Binv, _, s, _ = _pivot_loop(pivot, refresh, state, max_iter)
+    basis, Binv, _, s, _ = _pivot_loop(pivot, refresh, state, max_iter, unroll)
     return basis, Binv, s
 
 
@@ -183,8 +181,8 @@ class RayBasis(NamedTuple):
     s: Array  # (6,) the artificial columns' signs
 
 
-def ray_facet(W: Float[Array, "6 N"], d: Float[Array, " 6"], warm: RayBasis | None = None
-              ) -> tuple[Float[Array, " 6"], RayBasis]:
+def ray_facet(W: Float[Array, "6 N"], d: Float[Array, " 6"], warm: RayBasis | None = None,
+              unroll: bool | None = None) -> tuple[Float[Array, " 6"], RayBasis]:
     """Unit normal of the facet of conv(W) through which the ray from the origin along d leaves (the origin inside),
     and the LP's optimal basis.
 
@@ -197,27 +195,30 @@ def ray_facet(W: Float[Array, "6 N"], d: Float[Array, " 6"], warm: RayBasis | No
     if warm is None:
         s = jnp.where(d >= 0, 1.0, -1.0).astype(dt)
         basis, Binv = jnp.arange(n, n + 6), jnp.diag(s)
-        basis, Binv = _simplex(W, s, d, 1, basis, Binv, _MAX_PIVOTS)
-        basis, Binv = _simplex(W, s, d, 2, basis, Binv, _MAX_PIVOTS)
+        basis, Binv = _simplex(W, s, d, 1, basis, Binv, _MAX_PIVOTS, unroll)
+        basis, Binv = _simplex(W, s, d, 2, basis, Binv, _MAX_PIVOTS, unroll)
     else:
-        basis, Binv, s = _dual_simplex(W, warm.s, d, warm.basis, warm.Binv, _MAX_PIVOTS)
+        basis, Binv, s = _dual_simplex(W, warm.s, d, warm.basis, warm.Binv, _MAX_PIVOTS, unroll)
     y = jnp.sum(Binv * (basis < n).astype(dt)[:, None], axis=0)  # B^-T c_B, c_B = 1 on wrench columns
     size = jnp.sqrt(jnp.sum(y * y))
     return jnp.where(size > 0, y / jnp.where(size > 0, size, 1.0), d), RayBasis(basis, Binv, s)
 
 
-def search_epsilon(W: Float[Array, "6 N"], starts: Float[Array, "M 6"], warm: bool = True) -> Float[Array, ""]:
+def search_epsilon(W: Float[Array, "6 N"], starts: Float[Array, "M 6"], warm: bool = True,
+                   unroll: bool | None = None) -> Float[Array, ""]:
     """min over searched unit directions u of h(u) = max_j u . w_j: an upper bound of the signed Ferrari-Canny
     epsilon, exact where the walk reaches the nearest facet (see the module docstring). Meaningful when the
     origin is inside the hull (force closure); otherwise only its sign is. `warm` False solves every ray of a walk
-    cold (two phases), as before the warm starts: the same facets, kept for tests and bench/evaluation_parts.py."""
+    cold (two phases), as before the warm starts: the same facets, kept for tests and bench/evaluation_parts.py.
+    `unroll`: the simplex pivots of a loop trip unrolled, None for the backend's default (unrolled on a GPU);
+    bench/first_compile.py compares compile seconds against the warm call."""
     # full float32 products: a GPU's default (TF32-like) precision errs by ~1e-3, a tenth of a typical epsilon
     h0 = jnp.max(jnp.matmul(starts, W, precision=_EXACT), axis=1)
     dirs = starts[jax.lax.top_k(-h0, EPS_KEEP)[1]]
     best = jnp.min(h0)
 
     def step(dirs, best, start):  # start: the rays' last bases (RayBasis), or None to solve them cold
-        new, bases = jax.vmap(ray_facet, (None, 0, 0 if start is not None else None))(W, dirs, start)
+        new, bases = jax.vmap(ray_facet, (None, 0, 0 if start is not None else None, None))(W, dirs, start, unroll)
         moved = jnp.any(jnp.abs(new - dirs) > 1e-6)
         h = jnp.max(jnp.matmul(new, W, precision=_EXACT), axis=1)
         return new, jnp.minimum(best, jnp.min(h)), moved, bases

@@ -117,10 +117,10 @@ def clear_compiled() -> None:
 
 
 def _compiled(hand: Hand, target: Target, key: jax.ShapeDtypeStruct, given, dcfg: DeviceConfig, n: int, given_q=None,
-              sampler_params=None, sampler_res=None, mesh=None, palm_root=None):
+              sampler_params=None, sampler_res=None, mesh=None):
     """Ahead-of-time compiled device part, cached like jit's own cache (AOT compiles bypass that cache), so that
     compile time can be reported apart and every later object reuses the executable: (compiled, call), run as
-    `call(compiled, hand, target, key, given, given_q, sampler_params, palm_root)`. A new executable is checked
+    `call(compiled, hand, target, key, given, given_q, sampler_params)`. A new executable is checked
     against the device's free memory once, when compiled (`memory.check_fits` reads its memory analysis, about
     0.1 s: too slow for every call). With the compilation cache on, the trace itself is kept on disk too
     (`traced_store`)."""
@@ -131,6 +131,11 @@ def _compiled(hand: Hand, target: Target, key: jax.ShapeDtypeStruct, given, dcfg
             return _device_part(hand, target, key, given, dcfg, n, given_q, sampler_params, sampler_res, mesh,
                                 palm_root)
 
+        # the sampler's palm centre from MuJoCo on the host, once per executable: an MJX pass for it in the program
+        # cost seconds of tracing, and a host pass per call milliseconds of every call
+        palm_root = None if given is not None else jnp.asarray(palm_centre_root(hand), hand.lower.dtype)
+        if palm_root is not None and mesh.size > 1:
+            palm_root = jax.device_put(palm_root, NamedSharding(mesh, P()))
         # host callbacks (the proxsuite LP) and programs over several devices cannot be stored
         storable = mesh.size == 1 and dcfg.energy.lp_solver != "proxsuite"
         lowered, call = traced_store.lower("device_part", part, (hand, target, key, given, given_q, sampler_params,
@@ -138,7 +143,8 @@ def _compiled(hand: Hand, target: Target, key: jax.ShapeDtypeStruct, given, dcfg
         compiled = lowered.compile()
         # before anything is allocated: no out-of-memory traceback
         memory.check_fits(compiled, n, mesh.devices.flat[0])
-        _COMPILED[k], _CALLS[k] = compiled, call
+        _COMPILED[k] = compiled
+        _CALLS[k] = lambda compiled, *args: call(compiled, *args, palm_root)
     return _COMPILED[k], _CALLS[k]
 
 
@@ -266,15 +272,14 @@ def compile_device(hand: Hand, target: Target, cfg: GraspConfig, given: jax.Arra
     params, res = None, None
     if given is None:
         params, res = samplers.sampler_params(cfg.sampler, hand, cfg.sampling, target.sdf.grid.dtype)
-    palm_root = None if given is not None else jnp.asarray(palm_centre_root(hand), hand.lower.dtype)
     mesh = device_mesh(cfg.devices)
     if mesh.size > 1:  # inputs committed to one device (the hand's, the SDF's) must be on all of the mesh's
-        hand, target, given, given_q, params, palm_root = jax.device_put(
-            (hand, target, given, given_q, params, palm_root), NamedSharding(mesh, P()))
+        hand, target, given, given_q, params = jax.device_put((hand, target, given, given_q, params),
+                                                              NamedSharding(mesh, P()))
     key0 = jax.ShapeDtypeStruct((2,), jnp.uint32)  # `jax.random.PRNGKey`'s: no device call per lookup
     t0 = time.perf_counter()
-    compiled, call = _compiled(hand, target, key0, given, dcfg, n, given_q, params, res, mesh, palm_root)
-    return (lambda key: call(compiled, hand, target, key, given, given_q, params, palm_root)), \
+    compiled, call = _compiled(hand, target, key0, given, dcfg, n, given_q, params, res, mesh)
+    return (lambda key: call(compiled, hand, target, key, given, given_q, params)), \
         time.perf_counter() - t0
 
 
