@@ -231,7 +231,7 @@ def run(args) -> dict:
     from ffcgs_jax.physics import runner
 
     if not args.no_jax_cache:
-        from ffcgs_jax.cli import jax_cache
+        from ffcgs_jax.runtime import jax_cache
 
         jax_cache.enable()
     only = set(Q._split(args.only or ""))
@@ -349,7 +349,7 @@ def speed(args) -> dict:
     from ffcgs_jax.geometry import depth_io, depth_object, depth_render, mesh_io, tsdf
 
     if not args.no_jax_cache:
-        from ffcgs_jax.cli import jax_cache
+        from ffcgs_jax.runtime import jax_cache
 
         jax_cache.enable()
     mesh = mesh_io.load_mesh(args.object)

@@ -21,11 +21,13 @@ import numpy as np
 
 from ffcgs_jax.evaluation import device_metrics as dm
 from ffcgs_jax.evaluation import epsilon_search
-from ffcgs_jax.evaluation.metrics import sphere_basis
+from ffcgs_jax.kernels.directions import sphere_basis
 from ffcgs_jax.geometry import mesh_io
 from ffcgs_jax.geometry import sdf as S
 from ffcgs_jax.hand import kinematics as K
-from ffcgs_jax.synthesis import grasp, lp_jax, quality
+from ffcgs_jax.synthesis import grasp
+from ffcgs_jax.kernels import lp_jax
+from ffcgs_jax.kernels import quality
 from ffcgs_jax.synthesis.config import GraspConfig, OptimConfig
 from ffcgs_jax.synthesis.energy import make_target
 

@@ -25,8 +25,8 @@ import numpy as np
 
 import ffcgs_jax as fj
 from ffcgs_jax.evaluation import epsilon_search
-from ffcgs_jax.evaluation.metrics import sphere_basis
-from ffcgs_jax.synthesis import quality
+from ffcgs_jax.kernels.directions import sphere_basis
+from ffcgs_jax.kernels import quality
 
 _LINE = re.compile(r"Finished (tracing|jaxpr to MLIR module conversion|XLA compilation)(?: of)? (\S+?)(?: for jit)?"
                    r" in ([0-9.e-]+) sec")

@@ -24,7 +24,8 @@ from ffcgs_jax.geometry import mesh_io
 from ffcgs_jax.geometry import sdf as S
 from ffcgs_jax.geometry.config import SDFConfig
 from ffcgs_jax.hand import kinematics as K
-from ffcgs_jax.synthesis import grasp, quality
+from ffcgs_jax.synthesis import grasp
+from ffcgs_jax.kernels import quality
 from ffcgs_jax.synthesis.config import GraspConfig, OptimConfig
 from ffcgs_jax.synthesis.energy import make_target
 

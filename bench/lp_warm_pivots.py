@@ -14,7 +14,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ffcgs_jax.synthesis import lp_jax, quality
+from ffcgs_jax.kernels import lp_jax
+from ffcgs_jax.kernels import quality
 
 
 def main() -> None:

@@ -5,7 +5,7 @@
 
 From the rows of bench/eval_physics.py (geometric sampler, friction 0.6, valid grasps) it takes the first grasp of
 each kind: lift-shake success, lift-shake `lost`, six-dir `slip`, six-dir `lost`; replays each trial
-(`physics.video.record`) and puts three frames side by side: fingers closed, halfway through the test, end.
+(`viz.physics_video.record`) and puts three frames side by side: fingers closed, halfway through the test, end.
 """
 
 import argparse
@@ -20,7 +20,7 @@ from ffcgs_jax.geometry import mesh_io
 from ffcgs_jax.hand import spec as hand_spec
 from ffcgs_jax.physics import protocols as physics_protocols
 from ffcgs_jax.physics import runner as physics
-from ffcgs_jax.physics import video as physics_video
+from ffcgs_jax.viz import physics_video
 from ffcgs_jax.physics.config import PhysicsConfig
 from ffcgs_jax.synthesis import grasp_io
 

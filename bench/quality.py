@@ -262,7 +262,7 @@ def run(args) -> dict:
     from ffcgs_jax.physics import runner
 
     if not args.no_jax_cache:
-        from ffcgs_jax.cli import jax_cache
+        from ffcgs_jax.runtime import jax_cache
 
         jax_cache.enable()
     objs = []

@@ -15,7 +15,7 @@ The public API is the handful of names below; each is imported on first use, so 
 import importlib
 from typing import TYPE_CHECKING
 
-__version__ = "0.1.0"
+from ffcgs_jax.version import __version__
 
 # public name -> (module, attribute)
 _API = {
@@ -37,7 +37,7 @@ _API = {
     "SDFConfig": ("ffcgs_jax.geometry.config", "SDFConfig"),
     "PhysicsConfig": ("ffcgs_jax.physics.config", "PhysicsConfig"),
     "FfcgsError": ("ffcgs_jax.errors", "FfcgsError"),
-    "enable_compilation_cache": ("ffcgs_jax.cli.jax_cache", "enable"),
+    "enable_compilation_cache": ("ffcgs_jax.runtime.jax_cache", "enable"),
     "clear_compiled": ("ffcgs_jax.synthesis.grasp", "clear_compiled"),
     "plot_grasps": ("ffcgs_jax.viz.grasp_plot", "grasps_image"),
     "show": ("ffcgs_jax.viz.viewer", "show_grasps"),
@@ -45,7 +45,6 @@ _API = {
 __all__ = ["__version__", *_API]
 
 if TYPE_CHECKING:  # what the lazy names are, for type checkers and editors
-    from ffcgs_jax.cli.jax_cache import enable as enable_compilation_cache  # noqa: F401
     from ffcgs_jax.errors import FfcgsError  # noqa: F401
     from ffcgs_jax.geometry.config import SDFConfig  # noqa: F401
     from ffcgs_jax.geometry.depth_object import from_depth  # noqa: F401
@@ -55,6 +54,7 @@ if TYPE_CHECKING:  # what the lazy names are, for type checkers and editors
     from ffcgs_jax.physics.config import PhysicsConfig  # noqa: F401
     from ffcgs_jax.physics.runner import evaluate as evaluate_physics  # noqa: F401
     from ffcgs_jax.physics.validate import validate  # noqa: F401
+    from ffcgs_jax.runtime.jax_cache import enable as enable_compilation_cache  # noqa: F401
     from ffcgs_jax.synthesis.config import EnergyConfig, GraspConfig, OptimConfig, load_config  # noqa: F401
     from ffcgs_jax.synthesis.grasp import GraspSet, clear_compiled, load_grasps, save_grasps, synthesize  # noqa: F401
     from ffcgs_jax.synthesis.many import synthesize_many  # noqa: F401

@@ -1,5 +1,5 @@
 """Reading an MCAP file raw and checking messages against the JSON Schemas stored in it, for the tests of
-`synthesis.grasp_io` and `ffcgs grasp --mcap`."""
+`viz.grasp_log` and `ffcgs grasp --mcap`."""
 
 import json
 
@@ -9,7 +9,7 @@ _TYPES = {"object": dict, "array": list, "string": str, "boolean": bool, "number
 
 
 def schema_errors(value, schema, where="$") -> list[str]:
-    """The subset of JSON Schema that synthesis.grasp_io.SCHEMAS uses: type, properties, required, items,
+    """The subset of JSON Schema that synthesis.grasp_log.SCHEMAS uses: type, properties, required, items,
     additionalProperties. (JSON booleans are not numbers.)"""
     errors = []
     t = schema.get("type")
@@ -49,25 +49,25 @@ def read_timed(path):
 
 
 def check_run_log(path, arrays, order, iterations: int, hand_drawn: bool = True, mesh: bool = True) -> dict:
-    """What every `ffcgs grasp --mcap` log must hold to play in Foxglove (synthesis.grasp_io's docstring): the
+    """What every `ffcgs grasp --mcap` log must hold to play in Foxglove (viz.grasp_log's docstring): the
     schemas by name, every message valid against its schema, the scene entities and transforms, and /energy on a
     real timeline. `arrays`: the run's grasp arrays; `order`: its ranking (`GraspSet.order()`); `iterations`: T + 1.
     Returns the messages by topic."""
     import numpy as np
     from scipy.spatial.transform import Rotation
 
-    from ffcgs_jax.synthesis import grasp_io
+    from ffcgs_jax.viz import grasp_log
     from ffcgs_jax.viz.foxglove_schemas import SCHEMAS as FOXGLOVE
 
     timed = read_timed(path)
     msgs, meta = read_raw(path)
     names = {topic: name for topic, name, _, _ in timed}
-    hand_topics = [f"/hand/{k}" for k in range(min(grasp_io.HANDS, len(order)))]
+    hand_topics = [f"/hand/{k}" for k in range(min(grasp_log.HANDS, len(order)))]
     assert set(msgs) == {"/config", "/scene", "/tf", "/energy", "/grasp", "/summary", *hand_topics}, set(msgs)
     for topic, (encoding, schema, message_encoding) in meta.items():
         assert encoding == "jsonschema" and message_encoding == "json", topic
-        if topic in grasp_io.SCHEMAS:
-            assert names[topic] == schema["title"] and schema == grasp_io.SCHEMAS[topic], topic
+        if topic in grasp_log.SCHEMAS:
+            assert names[topic] == schema["title"] and schema == grasp_log.SCHEMAS[topic], topic
         else:
             want = "foxglove.FrameTransforms" if topic == "/tf" else "foxglove.SceneUpdate"
             assert names[topic] == want and schema == FOXGLOVE[want], topic
@@ -89,7 +89,7 @@ def check_run_log(path, arrays, order, iterations: int, hand_drawn: bool = True,
     e_times = np.array(times["/energy"], np.int64)
     assert len(e_times) == iterations and [m["iteration"] for m in msgs["/energy"]] == list(range(iterations))
     steps = np.diff(e_times)
-    assert (steps > 0).all() and (steps == grasp_io.STEP_NS).all() and grasp_io.STEP_NS > 1_000_000
+    assert (steps > 0).all() and (steps == grasp_log.STEP_NS).all() and grasp_log.STEP_NS > 1_000_000
     assert e_times[-1] - e_times[0] > 1_000_000 * (iterations - 1)
     assert times["/config"] == times["/scene"] == [e_times[0]] and times["/tf"][0] == e_times[0]
     assert set(times["/grasp"]) == set(times["/summary"]) == {e_times[-1]}

@@ -3,6 +3,7 @@ subpackages, configs beside their code, and a public API that is small, lazy and
 
 import ast
 import dataclasses
+import functools
 import importlib
 import subprocess
 import sys
@@ -34,6 +35,7 @@ def _type_checking_only(node: ast.AST, parents: dict) -> bool:
     return False
 
 
+@functools.cache
 def imports_of(name: str) -> set[str]:
     """The package modules `name` imports anywhere (top level, inside functions, in try blocks), resolved to
     modules: `from ffcgs_jax.x import y` is ffcgs_jax.x.y when that is a module, else ffcgs_jax.x. Imports under
@@ -173,3 +175,59 @@ def test_import_is_lazy_and_fast():
     assert heavy == "[]", heavy
     assert float(dt) < 0.5
     assert out[1] == "False"  # the configs are plain dataclasses: no JAX to build one
+
+
+def layers_contract() -> list[list[set[str]]]:
+    """docs/architecture.md's ```layers block: layers highest first, each a list of independent groups of names."""
+    text = (REPO / "docs" / "architecture.md").read_text()
+    block = text.split("```layers\n", 1)[1].split("```", 1)[0]
+    return [[set(g.split()) for g in line.split("|")] for line in block.splitlines() if line.strip()]
+
+
+def _lazy_api_imports() -> set[str]:
+    """The modules the public API's lazy names come from (`ffcgs_jax._API`: strings, not import statements)."""
+    tree = ast.parse(MODULES["ffcgs_jax"].read_text())
+    return {node.value for node in ast.walk(tree) if isinstance(node, ast.Constant) and isinstance(node.value, str)
+            and node.value in MODULES and node.value != "ffcgs_jax"}
+
+
+def place(module: str, contract) -> tuple[int, int]:
+    """(layer, group) of `module`: the longest contract name that is the module or a package above it."""
+    short = module.removeprefix("ffcgs_jax.") if module != "ffcgs_jax" else "ffcgs_jax"
+    best = None
+    for i, layer in enumerate(contract):
+        for j, group in enumerate(layer):
+            for name in group:
+                if short == name or short.startswith(name + "."):
+                    if best is None or len(name) > best[0]:
+                        best = (len(name), i, j)
+    assert best is not None, f"{module} is in no layer of docs/architecture.md"
+    return best[1], best[2]
+
+
+def layer_violations(contract) -> list[str]:
+    out = []
+    for m in MODULES:
+        deps = imports_of(m) | (_lazy_api_imports() if m == "ffcgs_jax" else set())
+        lm, gm = place(m, contract)
+        for d in sorted(deps - {m}):
+            ld, gd = place(d, contract)
+            if ld < lm:
+                out.append(f"{m} imports {d}, a higher layer")
+            elif ld == lm and gd != gm:
+                out.append(f"{m} imports {d}, an independent name of its layer")
+    return out
+
+
+def test_layer_violations_are_found():
+    contract = [[{"top"}], [{"low"}]]
+    assert place("ffcgs_jax.low.x", contract) == (1, 0)
+    with pytest.raises(AssertionError, match="in no layer"):
+        place("ffcgs_jax.nowhere", contract)
+
+
+def test_layers_hold():
+    """The import order docs/architecture.md states holds for every module: no exceptions."""
+    contract = layers_contract()
+    assert len(contract) >= 8
+    assert not layer_violations(contract), "\n".join(layer_violations(contract))

@@ -288,6 +288,7 @@ def run_grasp(cmd: GraspCmd) -> int:
     from ffcgs_jax.geometry import mesh_io
     from ffcgs_jax.hand import kinematics as K
     from ffcgs_jax.synthesis import grasp_io
+    from ffcgs_jax.viz import grasp_log
     from ffcgs_jax.synthesis.grasp import check_on_mesh, summary_rows, synthesize
 
     cmd.check_inputs()
@@ -334,7 +335,7 @@ def run_grasp(cmd: GraspCmd) -> int:
     _print_rows(rows)
     files.announce(f"wrote {out}")
     if cmd.mcap:
-        grasp_io.write_mcap(gs, cmd.mcap, hand, rows, mesh=mesh if mesh is not None else fused.mesh)
+        grasp_log.write_mcap(gs, cmd.mcap, hand, rows, mesh=mesh if mesh is not None else fused.mesh)
         files.announce(f"wrote {cmd.mcap}")
     if cmd.png:
         from ffcgs_jax.viz import grasp_plot, render
@@ -475,7 +476,7 @@ def run_eval(cmd: EvalCmd) -> None:
     _print_rows(rows)
     files.announce(f"wrote {out}")
     if cmd.video:
-        from ffcgs_jax.physics import video as physics_video
+        from ffcgs_jax.viz import physics_video
 
         first = res[physics_protocols.result_key(protocols[0], "success")]
         pick = cmd.video_index

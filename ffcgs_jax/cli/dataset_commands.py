@@ -76,8 +76,10 @@ def run_dataset_info(cmd: DatasetInfoCmd) -> None:
         files.write_text(cmd.json, json.dumps(stats, indent=1))
         files.announce(f"wrote {cmd.json}")
     if cmd.png:
+        from ffcgs_jax.viz import dataset_gallery
+
         with files.write_folder(cmd.png, "ffcgs dataset info") as tmp:
-            written, skipped = dataset_stats.gallery(cmd.dataset, tmp, cmd.per_object, cmd.objects)
+            written, skipped = dataset_gallery.gallery(cmd.dataset, tmp, cmd.per_object, cmd.objects)
         files.announce(f"wrote {len(written)} gallery picture(s) to {cmd.png}")
         if skipped:
             print(f"no picture for {len(skipped)} object(s) without grasps or mesh (pass --objects DIR): "

@@ -113,7 +113,7 @@ def _run(argv: list[str]) -> int:
         name, fn, cmd = parse_command(argv)
         plan = PLANS[name](cmd)
         plan.check()  # before anything is loaded or compiled: no output over an input or another output
-        from ffcgs_jax.cli import jax_cache  # imports JAX: not before parsing, so --help stays quick
+        from ffcgs_jax.runtime import jax_cache  # imports JAX: not before parsing, so --help stays quick
 
         jax_cache.enable()  # a second run loads its executables from disk (FFCGS_JAX_CACHE=off: compile every time)
         with plan.outputs_together():  # all of the command's outputs, or none

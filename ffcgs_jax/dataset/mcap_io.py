@@ -34,7 +34,8 @@ from typing import NamedTuple
 
 import numpy as np
 
-from ffcgs_jax import __version__, files
+from ffcgs_jax import files
+from ffcgs_jax.version import __version__
 from ffcgs_jax.dataset.schema import (
     MESSAGE_ENCODINGS,
     PHYSICS_ARRAYS,

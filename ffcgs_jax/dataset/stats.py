@@ -1,4 +1,4 @@
-"""`ffcgs dataset info`: counts, quality and diversity of a dataset file, and a picture gallery per object.
+"""`ffcgs dataset info`: counts, quality and diversity of a dataset file (its picture gallery: `viz.dataset_gallery`).
 
 Statistics stream over the file (one record at a time). Per object, the annotation counts stored in each record's
 `info` (candidates refined, valid, physics-tested, passed) give the planner's yield and the physics pass rate of
@@ -134,60 +134,3 @@ def format_stats(s: dict) -> str:
                      f"{i.get('tested_six_dir', 0):>7} {i.get('passed_both', 0):>7} {f(o['epsilon_median']):>8} "
                      f"{f(o['resultant'], '{:.2f}'):>9} {o['cells']:>5}")
     return "\n".join(lines)
-
-
-def _find_mesh(name: str, sha256: str, config: dict, objects_dir: Path | None):
-    """The source mesh of an object: regenerated for a procedural shape, else `objects_dir/<name>.*`, checked
-    against the hash the record carries; None if not found."""
-    from ffcgs_jax.dataset import build as dataset_build
-    from ffcgs_jax.geometry import mesh_io, procedural
-
-    if name.startswith("proc_"):
-        mesh = procedural.shape(int(config.get("seed", 0)), int(name.split("_")[1]))[1]
-        return mesh if dataset_build.mesh_sha256(mesh) == sha256 else None
-    if objects_dir is None:
-        return None
-    for p in sorted(objects_dir.glob(f"{name}.*")):
-        if p.suffix.lower() in dataset_build.MESH_SUFFIXES and dataset_build.file_sha256(p) == sha256:
-            return mesh_io.load_mesh(p)
-    return None
-
-
-def gallery(path: str | Path, out_dir: str | Path, per_object: int = 4, objects_dir: str | Path | None = None
-            ) -> tuple[list[Path], list[str]]:
-    """One PNG per object, <out_dir>/<object>.png: its first record's `per_object` best grasps by epsilon, with the
-    mesh rotated as in that record. The dataset stores SDFs, not meshes: meshes come from `objects_dir` (matched by
-    name and SHA-256) or, for procedural shapes, are regenerated. Returns (pictures written, objects skipped for want
-    of their mesh)."""
-    from ffcgs_jax.dataset.build import rotate_mesh
-    from ffcgs_jax.hand import kinematics as K
-    from ffcgs_jax.synthesis import grasp as grasp_mod
-    from ffcgs_jax.synthesis.config import GraspConfig
-    from ffcgs_jax.viz import grasp_plot
-    from ffcgs_jax.viz.render import save_png
-
-    config = dataset_io.read_config(path).get("config") or {}
-    hand = K.load_hand(config.get("hand", "svh"))
-    out_dir = Path(out_dir)
-    out_dir.mkdir(parents=True, exist_ok=True)
-    objects_dir = None if objects_dir is None else Path(objects_dir)
-    written, skipped, seen = [], [], set()
-    for rec in dataset_io.iter_records(path):
-        if rec.object_name in seen:
-            continue
-        seen.add(rec.object_name)
-        mesh = _find_mesh(rec.object_name, rec.mesh_sha256, config, objects_dir)
-        if mesh is None or rec.num_grasps == 0:
-            skipped.append(rec.object_name)
-            continue
-        g = rec.num_grasps
-        arrays = {"wrist_pose": rec.wrist_pose, "q": rec.q, "E": rec.E, "E_g": rec.E_g, "E_c": rec.E_c,
-                  "epsilon": rec.epsilon, "valid": np.ones(g, bool)}
-        gs = grasp_mod.GraspSet(arrays, {}, GraspConfig(), rec.object_name)
-        k = min(per_object, g)
-        image, _ = grasp_plot.grasps_image(hand, rotate_mesh(mesh, rec.rotation), gs, k=k,
-                                           order=np.argsort(-rec.epsilon, kind="stable")[:k])
-        target = out_dir / f"{rec.record_id.rsplit('.', 1)[0]}.png"
-        save_png(image, target)
-        written.append(target)
-    return written, skipped

@@ -11,7 +11,7 @@ same figures for every grasp at once, on the device that ran the synthesis, and 
   edge or vertex; on the surface at an edge or vertex the mean of the faces that share it, from tables built once
   per mesh). The sign comes from the generalised winding number (inside where > 1/2), as the SDF's does, instead
   of trimesh's ray tests: the same on watertight meshes, and defined on open ones.
-- E_g: the Q-distance LP of the touching contacts' wrenches in the in-graph simplex (`synthesis.lp_jax`), the same
+- E_g: the Q-distance LP of the touching contacts' wrenches in the in-graph simplex (`kernels.lp_jax`), the same
   LP `metrics.q_distance_reference` gives HiGHS. Fingertips that do not touch exert no force: their wrench rows
   are replaced by a touching fingertip's, which leaves the wrench hull, and so every figure, unchanged.
 - Ferrari-Canny epsilon: the minimum over unit wrench directions u of the support h(u) = max_j u . w_j (for a hull
@@ -37,10 +37,12 @@ import trimesh
 
 from ffcgs_jax.errors import FfcgsError
 from ffcgs_jax.evaluation.epsilon_search import EPS_STARTS, eps_tol, full_rank, search_epsilon
-from ffcgs_jax.evaluation.metrics import MetricsConfig, sphere_basis
+from ffcgs_jax.evaluation.metrics import MetricsConfig
 from ffcgs_jax.geometry import sdf as sdf_mod
-from ffcgs_jax.geometry.triangles import closest_offset, dist2, orientation, solid_angles, tri_table
-from ffcgs_jax.synthesis import compile_clock, lp_jax, quality, traced_store
+from ffcgs_jax.kernels import lp_jax, quality
+from ffcgs_jax.kernels.directions import sphere_basis
+from ffcgs_jax.kernels.triangles import closest_offset, dist2, orientation, solid_angles, tri_table
+from ffcgs_jax.runtime import compile_clock, traced_store
 from ffcgs_jax.types import Array, Float
 
 _POINT_CHUNK = 4096  # fingertip points per brute-force pass (bounds the (points, triangles) work in flight)

@@ -9,7 +9,7 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 
-from ffcgs_jax.synthesis import lp_jax
+from ffcgs_jax.kernels import lp_jax
 from ffcgs_jax.types import Array, Float
 
 EPS_STARTS = 256  # spread start directions of the epsilon search
@@ -42,7 +42,7 @@ def _simplex(W, s, d, phase: int, basis, Binv, max_iter: int, unroll: bool | Non
 
     Written with one-hot selections, elementwise products and sums instead of gathers, scatters, matrix products
     and library inverses: on a GPU XLA fuses these into a few kernels per pivot, where small batched matrix
-    products and LU factorisations are each a library call (`synthesis.lp_jax` says the same of its pivots)."""
+    products and LU factorisations are each a library call (`kernels.lp_jax` says the same of its pivots)."""
     n = W.shape[1]
     dt = W.dtype
     tol = lp_jax.pivot_tol(dt)  # the Q-distance simplex's pivot tolerance: the same LPs' scale

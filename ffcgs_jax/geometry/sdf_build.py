@@ -22,7 +22,7 @@ from scipy import ndimage
 from scipy.sparse import coo_matrix, csgraph
 from scipy.spatial import cKDTree
 
-from ffcgs_jax.geometry.triangles import closest_offset, orientation, solid_angle_one, tri_table
+from ffcgs_jax.kernels.triangles import closest_offset, orientation, solid_angle_one, tri_table
 from ffcgs_jax.types import Float, Int
 
 _BLOCK = 4  # voxels per block edge in the candidate pruning of step 1

@@ -17,7 +17,7 @@ import numpy as np
 from jaxtyping import Array, Float
 
 from ffcgs_jax.errors import FfcgsError
-from ffcgs_jax.hand._mjx import mjx
+from ffcgs_jax.hand.mjx_import import mjx
 from ffcgs_jax.hand.spec import HandSpec, load_spec
 
 

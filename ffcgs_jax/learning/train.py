@@ -24,7 +24,8 @@ import jax.numpy as jnp
 import numpy as np
 from tqdm import tqdm
 
-from ffcgs_jax import __version__, files
+from ffcgs_jax import files
+from ffcgs_jax.version import __version__
 from ffcgs_jax.errors import FfcgsError
 from ffcgs_jax.hand import kinematics as K
 from ffcgs_jax.hand import sites

@@ -32,7 +32,7 @@ import mujoco
 import numpy as np
 
 from ffcgs_jax.errors import FfcgsError
-from ffcgs_jax.hand._mjx import mjx
+from ffcgs_jax.hand.mjx_import import mjx
 from ffcgs_jax.physics.backend import CHUNK, Batch, Segment, pad_rows, pose_hand
 from ffcgs_jax.physics.scene import PhysicsScene
 

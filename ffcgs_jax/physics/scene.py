@@ -27,10 +27,32 @@ from ffcgs_jax.errors import FfcgsError
 from ffcgs_jax.hand.spec import HandSpec
 from ffcgs_jax.physics import dexgraspbench as dgb
 from ffcgs_jax.physics.config import PhysicsConfig
-from ffcgs_jax.viz.scene import OBJECT_RGBA, TABLE_RGBA
 
 ROLLING = 1e-4  # rolling friction (condim 6 only), MuJoCo's default
 WELD_TIMECONST = 0.01  # s: how fast the wrist weld pulls the hand to its target (>= 2 timesteps for stability)
+OBJECT_RGBA = (0.85, 0.55, 0.25, 1.0)
+TABLE_RGBA = (0.72, 0.74, 0.78, 1.0)
+
+
+def add_mesh_geom(s: mujoco.MjSpec, body, name: str, vertices: np.ndarray, faces: np.ndarray):
+    """Add mesh `name` (float32 vertices, int32 faces) to spec `s` and a geom of it to `body`, coloured as the object,
+    colliding with the hand (contype 1, conaffinity 2). The one place scenes (physics and pictures) add the object."""
+    m = s.add_mesh()
+    m.name = name
+    m.uservert = np.asarray(vertices, np.float32).ravel()
+    m.userface = np.asarray(faces, np.int32).ravel()
+    g = body.add_geom()
+    g.name, g.type, g.meshname = name, mujoco.mjtGeom.mjGEOM_MESH, name
+    g.rgba, g.contype, g.conaffinity = OBJECT_RGBA, 1, 2
+    return m, g
+
+
+def add_table(s: mujoco.MjSpec, table_z: float, conaffinity: int):
+    """Add the table: the plane z = table_z, contype 1 (the hand and, with conaffinity 3, the object touch it)."""
+    g = s.worldbody.add_geom()
+    g.name, g.type, g.size, g.pos = "table", mujoco.mjtGeom.mjGEOM_PLANE, [0, 0, 0.01], [0, 0, table_z]
+    g.rgba, g.contype, g.conaffinity = TABLE_RGBA, 1, conaffinity
+    return g
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -125,24 +147,15 @@ def build(spec: HandSpec, mesh: trimesh.Trimesh, parts: list[tuple[np.ndarray, n
     body.explicitinertial = True
     body.mass, body.ipos, body.fullinertia = mass, com, inertia
     for i, (v, f) in enumerate(parts):
-        m = s.add_mesh()
-        m.name = f"object_{i}"
-        m.uservert = np.asarray(v, np.float32).ravel()
-        m.userface = np.asarray(f, np.int32).ravel()
+        m, g = add_mesh_geom(s, body, f"object_{i}", v, f)
         m.inertia = mujoco.mjtMeshInertia.mjMESH_INERTIA_SHELL  # the body's inertia is explicit; thin parts are fine
-        g = body.add_geom()
-        g.name, g.type, g.meshname = f"object_{i}", mujoco.mjtGeom.mjGEOM_MESH, m.name
-        g.rgba, g.contype, g.conaffinity = OBJECT_RGBA, 1, 2
         _contact(g, cfg, priority=0 if dexgraspbench else 1)
     if hold:
         eq = s.add_equality()
         eq.type, eq.objtype, eq.name, eq.name1 = mujoco.mjtEq.mjEQ_WELD, mujoco.mjtObj.mjOBJ_BODY, "hold", "object"
         eq.solref = [WELD_TIMECONST, 1.0]  # as stiff as the wrist: at MuJoCo's 0.02 s closing fingers shove it 1-2 cm
     if table_z is not None:
-        g = s.worldbody.add_geom()
-        g.name, g.type, g.size, g.pos = "table", mujoco.mjtGeom.mjGEOM_PLANE, [0, 0, 0.01], [0, 0, table_z]
-        g.rgba, g.contype, g.conaffinity = TABLE_RGBA, 1, 3
-        _contact(g, cfg)
+        _contact(add_table(s, table_z, conaffinity=3), cfg)
     try:
         model = s.compile()
     except ValueError as e:

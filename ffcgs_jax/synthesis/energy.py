@@ -11,8 +11,8 @@ from jaxtyping import Array, Bool, Float, Int
 from ffcgs_jax.geometry import sdf
 from ffcgs_jax.hand import kinematics as K
 from ffcgs_jax.hand.kinematics import Hand, forward_kinematics
+from ffcgs_jax.kernels import quality
 from ffcgs_jax.synthesis import filters as F
-from ffcgs_jax.synthesis import quality
 from ffcgs_jax.synthesis.config import EnergyConfig
 
 

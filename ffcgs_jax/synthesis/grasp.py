@@ -30,8 +30,9 @@ from ffcgs_jax.geometry import sdf as sdf_mod
 from ffcgs_jax.hand import kinematics as K
 from ffcgs_jax.hand.kinematics import Hand
 from ffcgs_jax.hand.sites import palm_centre_root
+from ffcgs_jax.runtime import compile_clock, traced_store
+from ffcgs_jax.synthesis import fetch, grasp_io, memory, samplers, sharding
 from ffcgs_jax.synthesis import filters as F
-from ffcgs_jax.synthesis import compile_clock, fetch, grasp_io, memory, samplers, sharding, traced_store
 from ffcgs_jax.synthesis.config import EnergyConfig, GraspConfig, OptimConfig
 from ffcgs_jax.synthesis.energy import Target, Terms, chosen, fingertip_contacts, make_target
 from ffcgs_jax.synthesis.optimize import OptResult, Trace, descend

@@ -13,7 +13,7 @@ import mujoco
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from ffcgs_jax.viz.scene import OBJECT_RGBA, TABLE_RGBA
+from ffcgs_jax.physics.scene import OBJECT_RGBA, TABLE_RGBA
 
 HAND_RGBA = (0.45, 0.6, 0.85, 1.0)  # a valid grasp's hand
 INVALID_HAND_RGBA = (0.85, 0.45, 0.4, 1.0)

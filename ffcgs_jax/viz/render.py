@@ -19,7 +19,7 @@ Views (world z up; MuJoCo free-camera azimuth/elevation in degrees, the camera l
 Every view is a perspective camera with the model's `vis.global_.fovy`, aimed at the centre of the
 bounding box of all non-plane geoms and pulled back until all of their vertices fit with a margin.
 
-For animations (`physics.video`), `fit_cameras` fits the cameras once and `SceneRenderer` draws every frame with
+For animations (`viz.physics_video`), `fit_cameras` fits the cameras once and `SceneRenderer` draws every frame with
 them, keeping one GL context open.
 """
 

@@ -10,9 +10,7 @@ import trimesh
 from scipy.spatial.transform import Rotation
 
 from ffcgs_jax.hand.spec import HandSpec
-
-OBJECT_RGBA = (0.85, 0.55, 0.25, 1.0)
-TABLE_RGBA = (0.72, 0.74, 0.78, 1.0)
+from ffcgs_jax.physics.scene import add_mesh_geom, add_table
 
 
 def build_scene(
@@ -32,17 +30,9 @@ def build_scene(
     x, y, z, w = Rotation.from_matrix(wrist_pose[:3, :3]).as_quat()
     root.quat = [w, x, y, z]
     if obj is not None:
-        mesh = s.add_mesh()
-        mesh.name = "object"
-        mesh.uservert = np.asarray(obj.vertices, np.float32).ravel()
-        mesh.userface = np.asarray(obj.faces, np.int32).ravel()
-        g = s.worldbody.add_geom()
-        g.name, g.type, g.meshname = "object", mujoco.mjtGeom.mjGEOM_MESH, "object"
-        g.rgba, g.contype, g.conaffinity = OBJECT_RGBA, 1, 2
+        add_mesh_geom(s, s.worldbody, "object", obj.vertices, obj.faces)
     if table_z is not None:
-        g = s.worldbody.add_geom()
-        g.name, g.type, g.size, g.pos = "table", mujoco.mjtGeom.mjGEOM_PLANE, [0, 0, 0.01], [0, 0, table_z]
-        g.rgba, g.contype, g.conaffinity = TABLE_RGBA, 1, 2
+        add_table(s, table_z, conaffinity=2)
     m = s.compile()
     return m, mujoco.MjData(m)
 

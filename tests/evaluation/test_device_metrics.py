@@ -8,10 +8,10 @@ import scipy.spatial
 import trimesh
 
 from ffcgs_jax.evaluation import device_metrics as dm
-from ffcgs_jax.evaluation import epsilon_search
-from ffcgs_jax.evaluation import metrics
-from ffcgs_jax.evaluation.metrics import MetricsConfig, sphere_basis
+from ffcgs_jax.evaluation import epsilon_search, metrics
+from ffcgs_jax.evaluation.metrics import MetricsConfig
 from ffcgs_jax.geometry import mesh_io, sdf
+from ffcgs_jax.kernels.directions import sphere_basis
 
 CFG = MetricsConfig(contact_tol=0.002)
 N = 48  # grasps per call everywhere, so tests on one mesh share the compiled evaluation
@@ -145,7 +145,7 @@ def test_an_sdf_surface_matches_the_reference_sdf_path():
 def test_the_same_surface_in_16_times_the_faces_gives_the_same_figures_without_compiling():
     """The mug and its twice-subdivided copy (the same surface in 16 times the faces, many chunks): the same
     figures, and the large mesh runs through the executables the small one compiled."""
-    from ffcgs_jax.synthesis import compile_clock
+    from ffcgs_jax.runtime import compile_clock
 
     mesh = mesh_io.load_mesh("mug")
     fine = mesh.subdivide().subdivide()

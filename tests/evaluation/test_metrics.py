@@ -11,6 +11,7 @@ import trimesh
 
 from ffcgs_jax.errors import FfcgsError
 from ffcgs_jax.evaluation import metrics
+from ffcgs_jax.kernels import directions
 
 R = 0.05  # sphere radius, metres
 MU = 0.2
@@ -27,7 +28,7 @@ def sphere():
 
 @pytest.fixture(scope="module")
 def basis():
-    return metrics.sphere_basis(64)
+    return directions.sphere_basis(64)
 
 
 def _on_sphere(polar: float, azimuth: float, r: float = R) -> np.ndarray:
@@ -193,10 +194,10 @@ def test_mesh_contacts_sphere_signed_distance(sphere):
 
 
 def test_sphere_basis_deterministic_unit_and_spanning():
-    u = metrics.sphere_basis(64)
+    u = directions.sphere_basis(64)
     assert u.shape == (6, 64)
-    np.testing.assert_array_equal(u, metrics.sphere_basis(64))
-    assert not np.allclose(u, metrics.sphere_basis(64, seed=1))
+    np.testing.assert_array_equal(u, directions.sphere_basis(64))
+    assert not np.allclose(u, directions.sphere_basis(64, seed=1))
     np.testing.assert_allclose(np.linalg.norm(u, axis=0), 1.0, atol=1e-14)
     np.testing.assert_array_equal(u[:, :12:2], np.eye(6))
     np.testing.assert_array_equal(u[:, 1:12:2], -np.eye(6))
@@ -205,7 +206,7 @@ def test_sphere_basis_deterministic_unit_and_spanning():
     d = np.random.default_rng(123).standard_normal((1000, 6))
     d /= np.linalg.norm(d, axis=1, keepdims=True)
     assert (d @ u).max(axis=1).min() > 1 / math.sqrt(6)  # the ±e_i alone guarantee >= 1/sqrt(6)
-    assert metrics.sphere_basis(12).shape == (6, 12)
+    assert directions.sphere_basis(12).shape == (6, 12)
 
 
 # ------------------------------------------------------------------------------------------------- energies
@@ -323,7 +324,7 @@ def test_bad_inputs(sphere, basis):
     with pytest.raises(FfcgsError, match="radius must be"):
         metrics.primitive_wrenches(np.zeros((1, 3)), np.ones((1, 3)), np.zeros(3), -1.0, 0.2, 8)
     with pytest.raises(FfcgsError, match="sphere_basis needs an integer K >= 12"):
-        metrics.sphere_basis(6)
+        directions.sphere_basis(6)
     with pytest.raises(FfcgsError, match="q_upper must exceed q_lower on every channel.*\\[1\\]"):
         metrics.joint_limit_use(np.zeros((2, 2)), np.zeros(2), np.array([1.0, 0.0]))
     with pytest.raises(FfcgsError, match=r"q must have shape \(3, \*\)"):

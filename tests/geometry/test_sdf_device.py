@@ -6,12 +6,12 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 import trimesh
+from paths import SHARED
 
 from ffcgs_jax.errors import FfcgsError
-from ffcgs_jax.geometry import sdf, sdf_build, sdf_device, triangles
+from ffcgs_jax.geometry import sdf, sdf_build, sdf_device
 from ffcgs_jax.geometry.config import SDFConfig
-
-from paths import SHARED
+from ffcgs_jax.kernels import triangles
 
 DIST_TOL = 1e-6  # m: device vs host distances (both exact; the float32 search may pick another of near-tied faces)
 SURFACE_TOL = 1e-6  # m: closer to the surface, the sign and the normal may differ between builders
@@ -126,7 +126,7 @@ def test_a_mesh_of_several_chunks_matches_the_host_builder():
 
 def test_meshes_of_any_size_reuse_the_compiled_build():
     """1,280 faces and 81,920 faces (20 chunks): the second mesh compiles nothing."""
-    from ffcgs_jax.synthesis import compile_clock
+    from ffcgs_jax.runtime import compile_clock
 
     small = trimesh.creation.icosphere(3, SPHERE_R)
     large = trimesh.creation.annulus(0.02, 0.04, 0.05, sections=20480)  # a ring: its hole must stay outside

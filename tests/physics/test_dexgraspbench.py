@@ -163,7 +163,7 @@ def test_ffcgs_eval_protocol_dexgraspbench(capsys, tmp_path):
 
 
 def test_video_plan_is_grasp_squeeze_then_six_pushes_from_the_squeeze(scenes):
-    from ffcgs_jax.physics import video
+    from ffcgs_jax.viz import physics_video as video
 
     sc = scenes["dexgraspbench-bodex"]
     T, q = enveloping_ball_grasp()

@@ -163,7 +163,7 @@ def test_deterministic_for_a_seed_and_the_executable_is_reused(svh, meshes, box_
 def test_a_mesh_of_any_size_runs_through_the_compiled_executables(svh, meshes, box_run):
     """A mesh of 15,000 faces after the 12-face box: no executable compiles (counted by JAX's own compile events),
     compile_s says so, and the result is the same as for the same surface in few faces."""
-    from ffcgs_jax.synthesis import compile_clock
+    from ffcgs_jax.runtime import compile_clock
 
     box = meshes["box"]
     fine = box.subdivide_to_size(0.004)  # the same surface, many faces

@@ -11,6 +11,7 @@ import pytest
 
 from ffcgs_jax.errors import FfcgsError
 from ffcgs_jax.synthesis import grasp_io
+from ffcgs_jax.viz import grasp_log
 from ffcgs_jax.synthesis.config import EnergyConfig, OptimConfig
 from ffcgs_jax.synthesis.grasp import GraspConfig, GraspSet
 
@@ -89,7 +90,7 @@ def check_mcap(path, gs, summary, hand_drawn=True):
     package's own topics' contents."""
     T1, G = gs.trace["E"].shape
     msgs = check_run_log(path, gs.arrays, gs.order(), T1, hand_drawn=hand_drawn)
-    tf = 1 + (T1 * min(G, grasp_io.HANDS) if "wrist_pose" in gs.trace else 0)  # + each shown wrist per iteration
+    tf = 1 + (T1 * min(G, grasp_log.HANDS) if "wrist_pose" in gs.trace else 0)  # + each shown wrist per iteration
     assert {k: len(v) for k, v in msgs.items() if not k.startswith("/hand/")} == {
         "/config": 1, "/scene": 1, "/tf": tf, "/energy": T1, "/grasp": G, "/summary": 1}
     cfg = msgs["/config"][0]
@@ -106,7 +107,7 @@ def check_mcap(path, gs, summary, hand_drawn=True):
         for k in ("wrist_pose", "q", "contacts", "E", "E_g", "E_c", "E_q", "epsilon", "penetration"):
             np.testing.assert_allclose(np.asarray(m[k]), a[k][i], rtol=1e-15, err_msg=k)
     assert msgs["/summary"][0] == dict(summary)
-    assert grasp_io.read_mcap(path) == msgs  # the package's reader agrees
+    assert grasp_log.read_mcap(path) == msgs  # the package's reader agrees
     return msgs
 
 
@@ -126,7 +127,7 @@ def box():
 
 def test_mcap_topics_schemas_and_contents(gs, svh, box, tmp_path):
     path = tmp_path / "run.mcap"
-    grasp_io.write_mcap(gs, path, svh, SUMMARY, mesh=box)
+    grasp_log.write_mcap(gs, path, svh, SUMMARY, mesh=box)
     msgs = check_mcap(path, gs, SUMMARY)
     assert msgs["/config"][0]["hand"] == svh.spec.name and msgs["/config"][0]["version"]
     assert msgs["/config"][0]["config"]["energy"]["d0"] == 0.005
@@ -140,7 +141,7 @@ def test_mcap_topics_schemas_and_contents(gs, svh, box, tmp_path):
 
 def test_mcap_hand_name_only_draws_contacts(gs, box, tmp_path):
     path = tmp_path / "run.mcap"
-    grasp_io.write_mcap(gs, path, "svh", SUMMARY, mesh=box)
+    grasp_log.write_mcap(gs, path, "svh", SUMMARY, mesh=box)
     check_mcap(path, gs, SUMMARY, hand_drawn=False)
 
 
@@ -154,7 +155,7 @@ def test_mcap_replays_a_trace_of_poses(gs, svh, box, tmp_path):
     trace["wrist_pose"][:, :, 2, 3] += np.linspace(0.05, 0, T + 1)[:, None]  # the wrists descend onto the result
     traced = GraspSet(gs.arrays, trace, gs.config, gs.object_name)
     path = tmp_path / "run.mcap"
-    grasp_io.write_mcap(traced, path, svh, SUMMARY, mesh=box)
+    grasp_log.write_mcap(traced, path, svh, SUMMARY, mesh=box)
     msgs = check_mcap(path, traced, SUMMARY)
     timed = read_timed(path)
     energy_times = [t for topic, _, t, _ in timed if topic == "/energy"]
@@ -177,13 +178,13 @@ def test_mcap_writes_strict_json(gs, tmp_path):
     bad = GraspSet(gs.arrays, dict(gs.trace, E=np.where(np.arange(G_) == 1, np.nan, gs.trace["E"])), gs.config,
                    gs.object_name)
     path = tmp_path / "run.mcap"
-    grasp_io.write_mcap(bad, path, "svh", SUMMARY)
+    grasp_log.write_mcap(bad, path, "svh", SUMMARY)
     raw = [m for topic, _, _, m in read_timed(path) if topic == "/energy"]
     assert raw[0]["E"][1] is None and raw[0]["E"][0] == gs.trace["E"][0, 0]
 
 
 def test_schema_checker_can_fail():
-    s = grasp_io.SCHEMAS
+    s = grasp_log.SCHEMAS
     ok = {"iteration": 0, "E": [1.0], "E_g": [1.0], "E_c": [1.0], "E_min": 1.0, "E_median": 1.0, "E_g_median": 1.0,
           "E_c_median": 1.0}
     assert not schema_errors(ok, s["/energy"])
@@ -198,5 +199,5 @@ def test_schema_checker_can_fail():
 def test_mcap_unwritable_path(gs, tmp_path):
     (tmp_path / "plain").write_text("a file")
     with pytest.raises(FfcgsError, match="cannot write"):
-        grasp_io.write_mcap(gs, tmp_path / "plain" / "run.mcap", "svh", SUMMARY)
+        grasp_log.write_mcap(gs, tmp_path / "plain" / "run.mcap", "svh", SUMMARY)
     assert list(tmp_path.iterdir()) == [tmp_path / "plain"]

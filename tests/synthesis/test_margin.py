@@ -11,8 +11,8 @@ from ffcgs_jax.geometry import mesh_io
 from ffcgs_jax.geometry import sdf as sdf_mod
 from ffcgs_jax.geometry.config import SDFConfig
 from ffcgs_jax.hand import kinematics as K
+from ffcgs_jax.kernels import quality
 from ffcgs_jax.synthesis import energy as En
-from ffcgs_jax.synthesis import quality
 from ffcgs_jax.synthesis.config import EnergyConfig
 
 MU, M_EDGES, R = 0.2, 8, 0.05

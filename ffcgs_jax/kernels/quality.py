@@ -25,8 +25,8 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Bool, Float, Int
 
-from ffcgs_jax.evaluation.metrics import sphere_basis
-from ffcgs_jax.synthesis import lp_host, lp_jax
+from ffcgs_jax.kernels import lp_host, lp_jax
+from ffcgs_jax.kernels.directions import sphere_basis
 
 
 @functools.lru_cache(maxsize=8)

@@ -8,7 +8,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from ffcgs_jax.synthesis import traced_store
+from ffcgs_jax.runtime import traced_store
 
 
 class Out(NamedTuple):

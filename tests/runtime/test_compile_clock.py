@@ -1,9 +1,9 @@
-"""`synthesis.compile_clock`: the compile seconds of a block, from JAX's compile events."""
+"""`runtime.compile_clock`: the compile seconds of a block, from JAX's compile events."""
 
 import jax
 import jax.numpy as jnp
 
-from ffcgs_jax.synthesis import compile_clock
+from ffcgs_jax.runtime import compile_clock
 
 
 def test_a_new_function_counts_and_a_cached_one_does_not():

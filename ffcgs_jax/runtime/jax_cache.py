@@ -1,6 +1,6 @@
 """The persistent JAX compilation cache of the command-line tool: a second `ffcgs grasp` loads its executables
 from disk instead of compiling them again, and the traces of the device part and the evaluation from
-`synthesis.traced_store` (the mug's first grasp on a 2-core CPU: about a minute of compile cold, 3-6 s warm).
+`runtime.traced_store` (the mug's first grasp on a 2-core CPU: about a minute of compile cold, 3-6 s warm).
 
 On by default for the CLI. Where: $FFCGS_JAX_CACHE if set, else $XDG_CACHE_HOME/ffcgs-jax/xla (default
 ~/.cache/ffcgs-jax/xla). `FFCGS_JAX_CACHE=off` (or 0, false, no) turns it off. Library users opt in with

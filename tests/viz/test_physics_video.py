@@ -14,7 +14,7 @@ from ffcgs_jax.hand import spec as hand_spec
 from ffcgs_jax.physics import config as physics_config
 from ffcgs_jax.physics import protocols as physics_protocols
 from ffcgs_jax.physics import runner as physics
-from ffcgs_jax.physics import video as physics_video
+from ffcgs_jax.viz import physics_video
 from ffcgs_jax.physics.config import PhysicsConfig
 from ffcgs_jax.viz import scene
 

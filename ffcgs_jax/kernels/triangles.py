@@ -6,6 +6,7 @@ orientation. One copy of each, below their users."""
 import jax.numpy as jnp
 import numpy as np
 
+
 def orientation(tri: np.ndarray) -> float:
     """+1 if the faces wind outward (positive signed volume), -1 if the mesh is inside out."""
     c = tri.reshape(-1, 3).mean(0)

@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from ffcgs_jax.cli import jax_cache
+from ffcgs_jax.runtime import jax_cache
 
 
 def test_cache_dir_from_environment(monkeypatch, tmp_path):

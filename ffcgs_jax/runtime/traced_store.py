@@ -1,7 +1,7 @@
 """Traced programs kept on disk, so that a process that finds its executables in the compilation cache skips
 tracing too.
 
-JAX's persistent compilation cache (`cli.jax_cache`) keeps compiled executables, but finds them by a key computed
+JAX's persistent compilation cache (`runtime.jax_cache`) keeps compiled executables, but finds them by a key computed
 from the lowered program, so every process still traces: on a 2-core CPU that was about 14 s of a warm `ffcgs grasp`
 start, the device part's and the evaluation's traces (bench/RESULTS.md, "First grasp"). Where that cache is on,
 `lower` also keeps each traced function as a `jax.export` artifact (StableHLO in a flatbuffer: no pickle) in
@@ -28,7 +28,7 @@ from typing import Any
 
 import jax
 
-import ffcgs_jax
+from ffcgs_jax import version as package_version
 
 _ADDRESS = re.compile(r" at 0x[0-9a-fA-F]+")
 _REGISTERED: set[type] = set()
@@ -45,7 +45,7 @@ def folder() -> Path | None:
 @functools.cache
 def _source_hash() -> str:
     h = hashlib.sha256()
-    root = Path(ffcgs_jax.__file__).parent
+    root = Path(package_version.__file__).parent
     for p in sorted(root.rglob("*.py")):
         h.update(p.relative_to(root).as_posix().encode())
         h.update(p.read_bytes())

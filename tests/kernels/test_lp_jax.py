@@ -9,7 +9,7 @@ import pytest
 
 from ffcgs_jax.errors import FfcgsError
 from ffcgs_jax.evaluation import metrics
-from ffcgs_jax.synthesis import lp_host, lp_jax, quality
+from ffcgs_jax.kernels import lp_host, lp_jax, quality
 
 U = quality.basis(64)
 AXES = lp_jax._axis_columns(U)

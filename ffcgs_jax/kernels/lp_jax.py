@@ -42,7 +42,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ffcgs_jax.errors import FfcgsError
-from ffcgs_jax.synthesis import lp_pallas
+from ffcgs_jax.kernels import lp_pallas
 from ffcgs_jax.types import Array, Bool, Float, Int
 
 MAX_ITER = 100  # pivots; instances of this size took at most about 40 (tests/synthesis/test_lp_jax.py)

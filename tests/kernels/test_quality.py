@@ -9,7 +9,7 @@ import qpsolvers
 from scipy.optimize import linprog
 
 from ffcgs_jax.evaluation.metrics import q_distance_reference
-from ffcgs_jax.synthesis import lp_host, quality
+from ffcgs_jax.kernels import lp_host, quality
 
 REF_TOL = 1e-6  # the bound between the batched path and the references
 GRAD_TOL = 1e-4  # relative, custom VJP vs central differences of the LP value (solver accuracy 1e-7)
