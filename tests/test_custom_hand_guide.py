@@ -25,6 +25,8 @@ import pytest
 
 from paths import DATA, REPO
 
+pytestmark = pytest.mark.e2e  # the guide's steps end to end: a hand built, compiled and synthesised
+
 GUIDE = REPO / "docs" / "custom_hand.md"
 BLOCK = re.compile(r"(?:<!-- guide-(?P<mark>[^>]*?) -->\n)?```(?P<lang>[\w-]*)\n(?P<body>.*?)^```", re.S | re.M)
 

@@ -91,6 +91,7 @@ def _run(tmp_path, *argv):
     return r.stdout, json.loads(out.read_text()), (tmp_path / "R.md").read_text()
 
 
+@pytest.mark.e2e  # the depth benchmark script end to end
 def test_speed_on_tiny_frames(tmp_path):
     out, report, md = _run(tmp_path, "--speed", "--width", "80", "--height", "60", "--repeats", "1", "--points", "200")
     steps = [r["step"] for r in report["records"]]

@@ -15,6 +15,8 @@ import pytest
 
 from paths import REPO
 
+pytestmark = pytest.mark.e2e  # runs the notebooks end to end (minutes of SVH compiles)
+
 NOTEBOOKS = sorted((REPO / "notebooks").glob("*.ipynb"))
 # notebook file names too slow for the default suite; run with -m slow. depth_to_grasp (85 s on two cores) kept the
 # suite over 15 minutes; its pipeline is covered by tests/cli/test_cli_depth.py and tests/geometry/test_tsdf.py

@@ -6,6 +6,8 @@ import re
 import subprocess
 import sys
 
+import pytest
+
 import ffcgs_jax
 
 from paths import REPO
@@ -28,6 +30,7 @@ def test_readme_api_uses_only_the_public_names():
     assert "..." not in api_block() and imported <= {"numpy", "ffcgs_jax"}, imported
 
 
+@pytest.mark.e2e  # README's Python block end to end
 def test_readme_api_runs_as_written(tmp_path):
     env = dict(os.environ, JAX_PLATFORMS="cpu", FFCGS_JAX_CACHE="off")
     r = subprocess.run([sys.executable, "-c", api_block()], capture_output=True, text=True, cwd=tmp_path, env=env,

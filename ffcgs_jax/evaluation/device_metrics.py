@@ -26,7 +26,7 @@ same figures for every grasp at once, on the device that ran the synthesis, and 
   hull (E_g at most `eps_tol`'s bound) and the searched epsilon above its bound.
 """
 
-import collections
+import cachetools
 import functools
 from typing import NamedTuple
 
@@ -42,7 +42,7 @@ from ffcgs_jax.geometry import sdf as sdf_mod
 from ffcgs_jax.kernels import lp_jax, quality
 from ffcgs_jax.kernels.directions import sphere_basis
 from ffcgs_jax.kernels.triangles import closest_offset, dist2, orientation, solid_angles, tri_table
-from ffcgs_jax.runtime import compile_clock, traced_store
+from ffcgs_jax.runtime import COMPILED_MAX, compile_clock, traced_store
 from ffcgs_jax.types import Array, Float
 
 _POINT_CHUNK = 4096  # fingertip points per brute-force pass (bounds the (points, triangles) work in flight)
@@ -73,8 +73,7 @@ class MeshTable(NamedTuple):
     orient: Float[Array, ""]
 
 
-_TABLES: collections.OrderedDict = collections.OrderedDict()
-_TABLES_MAX = 16
+_TABLES = cachetools.LRUCache(16)
 
 
 def mesh_table(mesh: trimesh.Trimesh, dtype=None) -> MeshTable:
@@ -84,13 +83,8 @@ def mesh_table(mesh: trimesh.Trimesh, dtype=None) -> MeshTable:
         raise FfcgsError(f"device evaluation needs a triangle mesh with faces, got {type(mesh).__name__}")
     dtype = jnp.asarray(0.0).dtype if dtype is None else np.dtype(dtype)
     key = (sdf_mod.mesh_hash(np.asarray(mesh.vertices, np.float64), np.asarray(mesh.faces, np.int64)), str(dtype))
-    if key in _TABLES:
-        _TABLES.move_to_end(key)
-        return _TABLES[key]
-    table = jax.device_put(_build_table(mesh, dtype))
-    _TABLES[key] = table
-    while len(_TABLES) > _TABLES_MAX:
-        _TABLES.popitem(last=False)
+    if (table := _TABLES.get(key)) is None:
+        table = _TABLES[key] = jax.device_put(_build_table(mesh, dtype))
     return table
 
 
@@ -328,7 +322,7 @@ _step_jit = jax.jit(_step_mesh)
 _sdf_jit = jax.jit(_evaluate_sdf, static_argnames=("cfg",))
 # the argument signatures run once already, each with the mesh evaluation's last step, compiled ahead (its trace
 # is most of the evaluation's compile time, and `traced_store` keeps it on disk with the compilation cache)
-_COMPILED: dict = {}
+_COMPILED = cachetools.LRUCache(COMPILED_MAX)  # key -> (executable, call), or None: compiled by a first run
 
 
 def clear_compiled() -> None:

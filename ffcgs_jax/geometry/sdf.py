@@ -13,7 +13,7 @@ JAX device. `sdf_build` does the same on the host: the reference of the tests an
 the three steps).
 """
 
-import collections
+import cachetools
 import hashlib
 import pathlib
 from typing import NamedTuple
@@ -77,7 +77,9 @@ def grid_frame(bounds: np.ndarray, cfg: SDFConfig) -> tuple[np.ndarray, float]:
 
 _CACHE_SIZE = 16  # grids kept by `build_sdf`
 _CACHE_BYTES = 1 << 29  # and at most 512 MB of them (a 32^3 grid is 1 MB in float64, a 128^3 one 67 MB)
-_cache: collections.OrderedDict = collections.OrderedDict()  # key -> GradientSDF, least recently used first
+# key -> GradientSDF; each grid counts at least 1/16 of the bytes, so at most 16 are kept
+_cache = cachetools.LRUCache(_CACHE_BYTES, getsizeof=lambda g: min(max(g.grid.nbytes, _CACHE_BYTES // _CACHE_SIZE),
+                                                                  _CACHE_BYTES))
 _BUILDERS = ("device", "host")
 
 
@@ -128,9 +130,8 @@ def build_sdf(
         raise FfcgsError(f"table_z must be finite, got {table_z}")
     key = (mesh_hash(verts, faces), cfg.res, cfg.margin, cfg.min_margin,
            None if table_z is None else float(table_z), builder, jnp.result_type(float).name)
-    if cache and key in _cache:
-        _cache.move_to_end(key)
-        return _cache[key]
+    if cache and (hit := _cache.get(key)) is not None:
+        return hit
     flat = verts[faces].reshape(-1, 3)
     origin, voxel = grid_frame(np.stack([flat.min(0), flat.max(0)]), cfg)
     if builder == "device":
@@ -142,8 +143,6 @@ def build_sdf(
     out = GradientSDF(grid=grid, origin=jnp.asarray(origin), voxel_size=jnp.asarray(voxel), table_z=jnp.asarray(tz))
     if cache:
         _cache[key] = out
-        while len(_cache) > _CACHE_SIZE or sum(g.grid.nbytes for g in _cache.values()) > _CACHE_BYTES:
-            _cache.popitem(last=False)
     return out
 
 

@@ -1,7 +1,7 @@
 """The grasp energy E(q) for one wrist pose: E_g + a_c E_c + a_q E_q (eq. 5, 12, 13 of the paper), + a_m E_m (the
 force-closure margin, `quality.support_margin`) + a_pen P (the whole-hand penetration penalty)."""
 
-import collections
+import cachetools
 from typing import NamedTuple
 
 import jax
@@ -46,7 +46,10 @@ class Terms(NamedTuple):
     margin_dirs: Float[Array, "M 6"]  # the margin's searched directions: the next step's start
 
 
-_TARGETS: "collections.OrderedDict[int, tuple[sdf.GradientSDF, Target]]" = collections.OrderedDict()
+_TARGETS_BYTES = 1 << 29
+# id(grid) -> (grid, Target); each counts at least 1/8 of the bytes (so at most 8), one alone always fits
+_TARGETS = cachetools.LRUCache(_TARGETS_BYTES, getsizeof=lambda v: min(max(v[1].sdf.cells.nbytes, _TARGETS_BYTES // 8),
+                                                                       _TARGETS_BYTES))
 
 
 def make_target(grid: sdf.GradientSDF) -> Target:
@@ -57,13 +60,10 @@ def make_target(grid: sdf.GradientSDF) -> Target:
     128^3), least recently used dropped first."""
     hit = _TARGETS.get(id(grid))
     if hit is not None and hit[0] is grid:  # the grid is held, so its id cannot have been reused
-        _TARGETS.move_to_end(id(grid))
         return hit[1]
     centre, radius = sdf.object_centre_radius(grid)
     target = Target(sdf.with_cells(grid), centre, radius)
     _TARGETS[id(grid)] = (grid, target)
-    while len(_TARGETS) > 8 or (len(_TARGETS) > 1 and sum(t.sdf.cells.nbytes for _, t in _TARGETS.values()) > 2**29):
-        _TARGETS.popitem(last=False)
     return target
 
 

@@ -14,6 +14,7 @@ import warnings
 from pathlib import Path
 from typing import NamedTuple
 
+import cachetools
 import jax
 import jax.numpy as jnp
 import mujoco
@@ -30,7 +31,7 @@ from ffcgs_jax.geometry import sdf as sdf_mod
 from ffcgs_jax.hand import kinematics as K
 from ffcgs_jax.hand.kinematics import Hand
 from ffcgs_jax.hand.sites import palm_centre_root
-from ffcgs_jax.runtime import compile_clock, traced_store
+from ffcgs_jax.runtime import COMPILED_MAX, compile_clock, traced_store
 from ffcgs_jax.synthesis import fetch, grasp_io, memory, samplers, sharding
 from ffcgs_jax.synthesis import filters as F
 from ffcgs_jax.synthesis.config import EnergyConfig, GraspConfig, OptimConfig
@@ -103,8 +104,9 @@ def _descend_and_filter(hand: Hand, target: Target, poses: jax.Array, given_q: j
 
 
 device_mesh = sharding.device_mesh
-_COMPILED: dict = {}
-_CALLS: dict = {}  # how each of _COMPILED's executables takes its arguments (`traced_store.lower`)
+# key -> (executable, how it takes its arguments: `traced_store.lower`), the least recently used dropped past
+# COMPILED_MAX (each holds its code and, on a CPU, hundreds of the process's memory mappings)
+_COMPILED = cachetools.LRUCache(COMPILED_MAX)
 traced_store.register_outputs(DeviceOut, OptResult, Terms, Trace)
 
 
@@ -112,7 +114,6 @@ def clear_compiled() -> None:
     """Drop every executable the package holds compiled (the device part's, the evaluation's) and JAX's own caches:
     their memory comes back, and the next call compiles again, or loads from the disk cache where it is on."""
     _COMPILED.clear()
-    _CALLS.clear()
     device_metrics.clear_compiled()
     jax.clear_caches()
 
@@ -144,9 +145,8 @@ def _compiled(hand: Hand, target: Target, key: jax.ShapeDtypeStruct, given, dcfg
         compiled = lowered.compile()
         # before anything is allocated: no out-of-memory traceback
         memory.check_fits(compiled, n, mesh.devices.flat[0])
-        _COMPILED[k] = compiled
-        _CALLS[k] = lambda compiled, *args: call(compiled, *args, palm_root)
-    return _COMPILED[k], _CALLS[k]
+        _COMPILED[k] = compiled, lambda compiled, *args: call(compiled, *args, palm_root)
+    return _COMPILED[k]
 
 
 @dataclasses.dataclass

@@ -8,6 +8,7 @@ from ffcgs_jax.cli import benchmark
 from ffcgs_jax.cli.main import main
 
 
+@pytest.mark.e2e  # ffcgs bench end to end
 def test_bench_command_measures_and_writes_its_block(tmp_path, capsys):
     results, js = tmp_path / "RESULTS.md", tmp_path / "r.json"
     results.write_text("# Benchmark results\n\nEarlier sections stay.\n")

@@ -67,6 +67,7 @@ def test_fuse_writes_an_sdf_the_planner_reads(capsys, frames_dir, tmp_path):
     assert (tmp_path / "s.png").stat().st_size > 0
 
 
+@pytest.mark.e2e  # fusion, synthesis and evaluation end to end
 def test_grasp_from_depth_evaluates_on_the_fused_surface(capsys, frames_dir):
     out = frames_dir / "alone.npz"
     code, text, err = run(capsys, "grasp", "--depth", frames_dir / "frames", *SMALL, "--out", out)

@@ -37,6 +37,8 @@ from ffcgs_jax.synthesis import grasp as grasp_mod
 from ffcgs_jax.synthesis.config import GraspConfig
 from ffcgs_jax.synthesis.energy import make_target
 
+pytestmark = pytest.mark.e2e  # dataset builds end to end (planner, physics, MCAP)
+
 ASSETS = Path(objects.__file__).parent / "assets" / "objects"
 # Tiny settings shared by every build (same planner / grasp config = same compiled executables).
 TINY = ["--grasp.sdf.res", "16", "--planner.population", "16", "--planner.steps", "5", "--planner.refine", "8",

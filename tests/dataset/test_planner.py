@@ -19,6 +19,8 @@ from ffcgs_jax.hand import kinematics as K
 from ffcgs_jax.synthesis import energy
 from ffcgs_jax.synthesis.config import FilterConfig
 
+pytestmark = pytest.mark.e2e  # the planner's annealing compiled on the SVH
+
 # One small config for every test, so the two executables (start, anneal_from) compile once.
 CFG = PlannerConfig(population=8, steps=30, refine=8)
 KEY = jax.random.PRNGKey(3)

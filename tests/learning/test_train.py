@@ -20,6 +20,8 @@ from ffcgs_jax.learning.config import CVConfig, DataConfig, ModelConfig, TrainCo
 from cvae_toy import make_toy_dataset
 from paths import REPO
 
+pytestmark = pytest.mark.e2e  # training runs end to end (compiles the CVAE's steps)
+
 MODEL = ModelConfig(res=8, width=2, features=4, head=4, mlp=8, latent=2)
 TINY = ["--model.res", "8", "--model.width", "2", "--model.features", "4", "--model.head", "4", "--model.mlp", "8"]
 

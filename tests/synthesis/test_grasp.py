@@ -22,6 +22,8 @@ from ffcgs_jax.synthesis import samplers
 from ffcgs_jax.synthesis.config import EnergyConfig, OptimConfig
 from ffcgs_jax.viz import scene
 
+pytestmark = pytest.mark.e2e  # the SVH pipeline compiled in several configurations
+
 N, ITERS = 4, 5
 BOX = G.GraspConfig(n=N, sdf=SDFConfig(res=16), optim=OptimConfig(iters=ITERS))
 PAPER = dataclasses.replace(BOX, sampler="random", energy=EnergyConfig(a_pen=0.0, a_m=0.0, normal_grad=False),

@@ -15,6 +15,8 @@ from ffcgs_jax.synthesis.config import OptimConfig
 from ffcgs_jax.viz import scene
 from paths import DATA
 
+pytestmark = pytest.mark.e2e  # the whole pipeline compiled for each hand
+
 CFG = G.GraspConfig(n=4, sdf=SDFConfig(res=16), optim=OptimConfig(iters=5))
 HANDS = {"allegro": "allegro", "toy": str(DATA / "toy_hand" / "toy.toml")}
 

@@ -40,6 +40,7 @@ def test_the_host_reports_free_memory():
     assert free is None or free > 0
 
 
+@pytest.mark.e2e  # a full synthesize compiled to be refused
 def test_synthesize_refuses_before_running(monkeypatch):
     """The pipeline asks before it allocates: with (pretend) 1 kB free, one line and no run."""
     monkeypatch.setattr(memory, "free_bytes", lambda device: 1000)

@@ -12,6 +12,8 @@ from ffcgs_jax.errors import FfcgsError
 from ffcgs_jax.geometry import mesh_io
 from ffcgs_jax.hand import kinematics as K
 
+pytestmark = pytest.mark.e2e  # the viewer serves a synthesised set (the SVH pipeline compiled)
+
 viser = pytest.importorskip("viser", reason="the viewer needs the viz extra: pip install -e '.[viz]'")
 from ffcgs_jax.cli.show_command import ShowCmd, hand_of  # noqa: E402
 from ffcgs_jax.viz import viewer  # noqa: E402
