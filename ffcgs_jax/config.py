@@ -23,9 +23,9 @@ SEED_MAX = 2**63 - 1  # seeds are int64 (JAX's and NumPy's PRNG keys take them)
 
 
 def check_range(name: str, value: int | float, lo: int | float, hi: int | float) -> None:
-    """Refuse `value` outside [lo, hi], naming the config key `name`."""
-    if not lo <= value <= hi:
-        raise FfcgsError(f"{name} must be in [{lo}, {hi}], got {value}")
+    """Refuse `value` outside [lo, hi], or not a number (NaN, a string, a bool), naming the config key `name`."""
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not lo <= value <= hi:
+        raise FfcgsError(f"{name} must be in [{lo}, {hi}], got {value!r}")
 
 
 def check_integer(name: str, value: Any, lo: int, hi: int) -> None:

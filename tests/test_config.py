@@ -29,7 +29,7 @@ def test_defaults_and_overrides(tmp_path):
     ({"sdf": {"resolution": 3}}, r"unknown config key\(s\) sdf.resolution; valid keys in sdf: margin, min_margin, res, scale"),
     ({"nmae": "y"}, r"unknown config key\(s\) nmae; valid keys: name, sdf"),
     ({"sdf": {"res": "64"}}, r"sdf.res must be int, got '64'"),
-    ({"sdf": {"res": 200}}, r"sdf.res must be in \[16, 128\], got 200"),
+    ({"sdf": {"res": 200}}, r"sdf.res must be an integer in \[16, 128\], got 200"),
     ({"sdf": {"scale": -1.0}}, r"sdf.scale must be > 0"),
     ({"sdf": 3}, r"config section sdf must be a table, got int"),
 ])
@@ -50,3 +50,59 @@ def test_missing_and_broken_files(tmp_path):
     bad.write_text("res = = 3")
     with pytest.raises(FfcgsError, match="not valid TOML"):
         load(Outer, bad)
+
+
+def test_every_environment_variable_read_is_documented_in_one_table():
+    """README's "Environment variables" table names every variable the package reads, and only those."""
+    import re
+
+    from paths import REPO
+
+    read = set()
+    for path in (REPO / "ffcgs_jax").rglob("*.py"):
+        read |= set(re.findall(r"os\.environ(?:\.get)?[\[(]\"([A-Z_]+)\"", path.read_text()))
+    readme = (REPO / "README.md").read_text()
+    table = readme.split("**Environment variables.**", 1)[1].split("\n\n", 2)[1]
+    documented = set(re.findall(r"^\| `([A-Z_]+)` \|", table, flags=re.M))
+    assert read and read == documented, (read, documented)
+
+
+def test_metrics_config_is_derived_from_the_energy_config():
+    """The evaluation measures under the synthesis's own friction, cone, offsets, weights and basis: each
+    MetricsConfig field is the EnergyConfig field of its name (contact_tol the GraspConfig's)."""
+    import dataclasses
+
+    from ffcgs_jax.evaluation.metrics import MetricsConfig
+    from ffcgs_jax.synthesis.config import EnergyConfig, GraspConfig
+    from ffcgs_jax.synthesis.grasp import metrics_config
+
+    cfg = GraspConfig(energy=EnergyConfig(mu=0.7, cone_edges=6, d0=0.001, a_c=3.0, a_q=0.1, basis_size=32),
+                      contact_tol=0.003)
+    m = metrics_config(cfg)
+    for f in dataclasses.fields(MetricsConfig):
+        source = cfg if f.name == "contact_tol" else cfg.energy
+        assert getattr(m, f.name) == getattr(source, f.name), f.name
+    assert (m.mu, m.cone_edges, m.basis_size) == (0.7, 6, 32)
+
+
+@pytest.mark.parametrize("cls, field", [("geometry.config.SDFConfig", "res"), ("synthesis.config.OptimConfig", "iters"),
+                                        ("synthesis.config.EnergyConfig", "cone_edges"),
+                                        ("physics.config.PhysicsConfig", "max_hulls"),
+                                        ("synthesis.config.GraspConfig", "n"),
+                                        ("viz.config.RenderConfig", "width")])
+def test_integer_fields_refuse_floats_and_bools(cls, field):
+    import dataclasses
+    import importlib
+
+    from ffcgs_jax.config import check_all
+    from ffcgs_jax.errors import FfcgsError
+
+    module, name = cls.rsplit(".", 1)
+    klass = getattr(importlib.import_module(f"ffcgs_jax.{module}"), name)
+    good = getattr(klass(), field)
+    check_all(dataclasses.replace(klass(), **{field: good}))
+    for bad in (float(good) + 0.5, float(good), True):
+        obj = klass()
+        object.__setattr__(obj, field, bad)  # past the suite's runtime type checks: what a TOML typo or a plain run gives
+        with pytest.raises(FfcgsError, match=f"{field} must be an integer"):
+            check_all(obj)

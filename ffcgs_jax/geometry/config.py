@@ -2,7 +2,7 @@
 
 import dataclasses
 
-from ffcgs_jax.config import check_range
+from ffcgs_jax.config import check_integer, check_range
 from ffcgs_jax.errors import FfcgsError
 
 
@@ -24,7 +24,7 @@ class SDFConfig:
     scale: float = 1.0
 
     def check(self) -> None:
-        check_range("sdf.res", self.res, 16, 128)
+        check_integer("sdf.res", self.res, 16, 128)
         check_range("sdf.margin", self.margin, 0.0, 2.0)
         check_range("sdf.min_margin", self.min_margin, 0.0, 1.0)
         if not self.scale > 0:

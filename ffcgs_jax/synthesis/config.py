@@ -65,8 +65,8 @@ class EnergyConfig:
             raise FfcgsError(f"unknown energy.lp_solver {self.lp_solver!r}; solvers: {', '.join(LP_SOLVERS)}")
         check_integer("energy.lp_pivots", self.lp_pivots, 1, 100_000)
         check_range("energy.mu", self.mu, 0.0, 2.0)
-        check_range("energy.cone_edges", self.cone_edges, 3, 64)
-        check_range("energy.basis_size", self.basis_size, 12, 1024)
+        check_integer("energy.cone_edges", self.cone_edges, 3, 64)
+        check_integer("energy.basis_size", self.basis_size, 12, 1024)
         check_range("energy.d0", self.d0, -0.05, 0.05)
         check_range("energy.closure_margin", self.closure_margin, 0.0, 1.0)
         check_integer("energy.margin_dirs", self.margin_dirs, 1, 1024)
@@ -125,7 +125,7 @@ class OptimConfig:
             raise FfcgsError(f"optim.method must be gd or adam, got {self.method!r}")
         check_range("optim.lr", self.lr, 0.0, 10.0)
         check_range("optim.lr_end", self.lr_end, 0.0, 10.0)
-        check_range("optim.iters", self.iters, 1, 100000)
+        check_integer("optim.iters", self.iters, 1, 100000)
         check_range("optim.step", self.step, 0.0, 1e3)
         check_range("optim.step_end", self.step_end, 0.0, 1e3)
         check_range("optim.eps_g", self.eps_g, 0.0, 10.0)
@@ -195,8 +195,7 @@ class SamplerConfig:
             if not (ok and v <= hi):
                 zero = " (0: derived from the hand)" if name == "standoff" else ""
                 raise FfcgsError(f"sampler.{name} must be a number in ({lo}, {hi}]{zero}, got {v!r}")
-        if not (isinstance(self.oversample, int) and 1 <= self.oversample <= 4096):
-            raise FfcgsError(f"sampler.oversample must be an integer in [1, 4096], got {self.oversample!r}")
+        check_integer("sampler.oversample", self.oversample, 1, 4096)
         check_integer("sampler.cvae_oversample", self.cvae_oversample, 1, 4096)
         if not isinstance(self.weights, str):
             raise FfcgsError(f"sampler.weights must be a file path (or \"\" for the shipped weights), got "
@@ -244,8 +243,7 @@ class GraspConfig:
     sampling: SamplerConfig = SamplerConfig()
 
     def check(self) -> None:
-        if not 1 <= self.n <= 1_000_000:
-            raise FfcgsError(f"n must be >= 1 (and at most 1e6), got {self.n}")
+        check_integer("n", self.n, 1, 1_000_000)
         if self.sampler not in ("auto", *SAMPLERS):
             raise FfcgsError(f"unknown sampler {self.sampler!r}; samplers: auto, {', '.join(SAMPLERS)}")
         if not 0 <= self.max_penetration <= 1:

@@ -363,9 +363,11 @@ def _joint_names(spec) -> np.ndarray:
 
 
 def metrics_config(cfg: GraspConfig) -> metrics.MetricsConfig:
-    e = cfg.energy
-    return metrics.MetricsConfig(mu=e.mu, cone_edges=e.cone_edges, d0=e.d0, a_c=e.a_c, a_q=e.a_q,
-                                 basis_size=e.basis_size, contact_tol=cfg.contact_tol)
+    """The evaluation's settings, derived from the synthesis's: every `MetricsConfig` field is the `EnergyConfig` field
+    of its name (friction, cone, offsets, weights, basis), except `contact_tol`, which is the `GraspConfig`'s; so an
+    energy setting can never be evaluated under another value."""
+    fields = {f.name for f in dataclasses.fields(metrics.MetricsConfig)} - {"contact_tol"}
+    return metrics.MetricsConfig(**{name: getattr(cfg.energy, name) for name in fields}, contact_tol=cfg.contact_tol)
 
 
 def check_on_mesh(hand: Hand, mesh: trimesh.Trimesh, gs: GraspSet, grid: sdf_mod.GradientSDF) -> dict[str, np.ndarray]:

@@ -2,7 +2,7 @@
 
 import dataclasses
 
-from ffcgs_jax.config import check_range
+from ffcgs_jax.config import check_integer, check_range
 from ffcgs_jax.errors import FfcgsError
 
 
@@ -21,7 +21,7 @@ class RenderConfig:
     backend: str = "auto"
 
     def check(self) -> None:
-        check_range("render.width", self.width, 64, 4096)
-        check_range("render.height", self.height, 64, 4096)
+        check_integer("render.width", self.width, 64, 4096)
+        check_integer("render.height", self.height, 64, 4096)
         if self.backend not in ("auto", "mujoco", "software"):
             raise FfcgsError(f"render.backend must be one of auto, mujoco, software; got {self.backend!r}")

@@ -54,7 +54,7 @@ def test_config_file_then_command_line_override(capsys, tmp_path):
 
 @pytest.mark.parametrize("argv, message", [
     (["sdf", "nonexistent_thing"], "nonexistent_thing"),
-    (["sdf", "mug", "--res", "8"], r"sdf.res must be in \[16, 128\]"),
+    (["sdf", "mug", "--res", "8"], r"sdf.res must be an integer in \[16, 128\]"),
     (["hand", "--q", "1", "2"], r"--q must have shape \(9,\)"),
     (["hand", "--q", "0", "0", "0", "0", "0", "0", "0", "0", "3"], "outside the joint limits"),
     (["hand", "--close", "2"], r"--close must be in \[0, 1\]"),

@@ -97,7 +97,7 @@ def _nan_poses():
 @pytest.mark.parametrize("make_argv, message", [
     (lambda t: ["grasp", "/no/such/mesh.stl"], "mesh.stl"),
     (lambda t: ["grasp", "nonexistent_thing"], "nonexistent_thing"),
-    (lambda t: ["grasp", "box", "--n", "0"], "n must be >= 1"),
+    (lambda t: ["grasp", "box", "--n", "0"], r"n must be an integer in \[1, 1000000\]"),
     (lambda t: ["grasp", "box", "--sampler", "learned"], "unknown sampler 'learned'"),
     (lambda t: ["grasp", "box", "--poses", _poses_file(t, _nan_poses())], "NaN"),
     (lambda t: ["grasp", "box", "--poses", _poses_file(t, np.zeros((2, 3, 4)))], r"shape \(4, 4\) or \(B, 4, 4\)"),

@@ -196,7 +196,7 @@ def test_given_poses_skip_sampling(svh, meshes, box_run):
 
 
 @pytest.mark.parametrize("cfg, message", [
-    (G.GraspConfig(n=0), "n must be >= 1"),
+    (G.GraspConfig(n=0), r"n must be an integer in \[1, 1000000\]"),
     (G.GraspConfig(sampler="learned"), "unknown sampler 'learned'"),
     (G.GraspConfig(max_penetration=-0.1), "max_penetration"),
 ])

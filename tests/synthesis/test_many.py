@@ -168,7 +168,7 @@ def test_an_interrupt_ends_the_loop_without_waiting_for_the_next_load(monkeypatc
 
 
 def test_bad_arguments_raise_at_the_call_not_per_object(tmp_path, svh):
-    with pytest.raises(FfcgsError, match="n must be >= 1"):
+    with pytest.raises(FfcgsError, match=r"n must be an integer in \[1, 1000000\]"):
         synthesize_many(svh, ["mug"], GraspConfig(n=0))
     with pytest.raises(FfcgsError, match="prefetch must be an integer >= 0"):
         synthesize_many(svh, ["mug"], prefetch=-1)
