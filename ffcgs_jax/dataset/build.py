@@ -61,14 +61,6 @@ class Source:
         return self.mesh if self.mesh is not None else mesh_io.load_mesh(self.path)
 
 
-def file_sha256(path: Path) -> str:
-    return hashlib.sha256(path.read_bytes()).hexdigest()
-
-
-def mesh_sha256(mesh: trimesh.Trimesh) -> str:
-    h = hashlib.sha256(np.ascontiguousarray(mesh.vertices, "<f8").tobytes())
-    h.update(np.ascontiguousarray(mesh.faces, "<i8").tobytes())
-    return h.hexdigest()
 
 
 def _categories(directory: Path) -> dict[str, str]:
@@ -105,14 +97,15 @@ def sources(cfg: DatasetConfig) -> list[Source]:
     for i, p in enumerate(files):
         split = "test" if i % 5 == 4 else "train"
         if cfg.split in ("all", split):
-            out.append(Source(p.stem, split, cats.get(p.name, ""), file_sha256(p), path=p))
+            # the geometry's identity, not the file's bytes: a re-saved or reformatted file is the same object
+            out.append(Source(p.stem, split, cats.get(p.name, ""), mesh_io.mesh_sha256(mesh_io.load_mesh(p)), path=p))
     if cfg.split in ("train", "all"):
         for i in range(cfg.procedural):
             name, mesh = procedural.shape(cfg.seed, i)
             if name in stems:
                 raise FfcgsError(f"{directory} has a file named like procedural shape {name!r}; rename it or "
                                  f"build without --procedural")
-            out.append(Source(name, "train", "procedural", mesh_sha256(mesh), mesh=mesh))
+            out.append(Source(name, "train", "procedural", mesh_io.mesh_sha256(mesh), mesh=mesh))
     return out
 
 

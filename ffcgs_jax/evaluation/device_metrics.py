@@ -38,6 +38,7 @@ import trimesh
 from ffcgs_jax.errors import FfcgsError
 from ffcgs_jax.evaluation.epsilon_search import EPS_STARTS, eps_tol, full_rank, search_epsilon
 from ffcgs_jax.evaluation.metrics import MetricsConfig
+from ffcgs_jax.geometry import mesh_io
 from ffcgs_jax.geometry import sdf as sdf_mod
 from ffcgs_jax.kernels import lp_jax, quality
 from ffcgs_jax.kernels.directions import sphere_basis
@@ -77,12 +78,12 @@ _TABLES = cachetools.LRUCache(16)
 
 
 def mesh_table(mesh: trimesh.Trimesh, dtype=None) -> MeshTable:
-    """The `MeshTable` of `mesh` on the default device, cached per `sdf.mesh_hash` and dtype (16 meshes, least recently
+    """The `MeshTable` of `mesh` on the default device, cached per `mesh_io.mesh_sha256` and dtype (16 meshes, least recently
     used dropped), so repeated calls on one object build it once."""
     if not isinstance(mesh, trimesh.Trimesh) or len(mesh.faces) == 0:
         raise FfcgsError(f"device evaluation needs a triangle mesh with faces, got {type(mesh).__name__}")
     dtype = jnp.asarray(0.0).dtype if dtype is None else np.dtype(dtype)
-    key = (sdf_mod.mesh_hash(np.asarray(mesh.vertices, np.float64), np.asarray(mesh.faces, np.int64)), str(dtype))
+    key = (mesh_io.mesh_sha256(mesh), str(dtype))
     if (table := _TABLES.get(key)) is None:
         table = _TABLES[key] = jax.device_put(_build_table(mesh, dtype))
     return table

@@ -164,11 +164,12 @@ def _read(path: pathlib.Path) -> trimesh.Trimesh:
 
 
 def mesh_sha256(mesh: trimesh.Trimesh) -> str:
-    """A content hash of the mesh as loaded (scaled vertices and faces): two files give the same hash exactly when
-    they load to the same geometry."""
+    """The package's one identity of a geometry: SHA-256 of the mesh as loaded (little-endian float64 vertices, then
+    int64 faces). Two files give the same hash exactly when they load to the same geometry. It keys the in-process
+    grid and triangle-table caches and the convex parts' disk cache, and grasp files and dataset records carry it."""
     h = hashlib.sha256()
-    h.update(np.ascontiguousarray(mesh.vertices, np.float64).tobytes())
-    h.update(np.ascontiguousarray(mesh.faces, np.int64).tobytes())
+    h.update(np.ascontiguousarray(mesh.vertices, "<f8").tobytes())
+    h.update(np.ascontiguousarray(mesh.faces, "<i8").tobytes())
     return h.hexdigest()
 
 

@@ -14,7 +14,6 @@ the three steps).
 """
 
 import cachetools
-import hashlib
 import pathlib
 from typing import NamedTuple
 
@@ -26,7 +25,7 @@ from jax.custom_derivatives import SymbolicZero
 
 from ffcgs_jax import files
 from ffcgs_jax.errors import FfcgsError
-from ffcgs_jax.geometry import sdf_build, sdf_device
+from ffcgs_jax.geometry import mesh_io, sdf_build, sdf_device
 from ffcgs_jax.geometry.config import SDFConfig
 from ffcgs_jax.types import Array, Float
 
@@ -128,7 +127,7 @@ def build_sdf(
         raise FfcgsError("build_sdf: mesh vertices contain NaN or inf")
     if table_z is not None and not np.isfinite(table_z):
         raise FfcgsError(f"table_z must be finite, got {table_z}")
-    key = (mesh_hash(verts, faces), cfg.res, cfg.margin, cfg.min_margin,
+    key = (mesh_io.mesh_sha256(mesh), cfg.res, cfg.margin, cfg.min_margin,
            None if table_z is None else float(table_z), builder, jnp.result_type(float).name)
     if cache and (hit := _cache.get(key)) is not None:
         return hit
@@ -149,16 +148,6 @@ def build_sdf(
 def clear_cache() -> None:
     """Forget the grids `build_sdf` keeps (after this, each mesh is built again)."""
     _cache.clear()
-
-
-def mesh_hash(verts: np.ndarray, faces: np.ndarray) -> str:
-    """SHA-256 of a mesh's float64 vertices and int64 faces (shapes included): the key of the caches of grids
-    here and of triangle tables in `evaluation.device_metrics`."""
-    h = hashlib.sha256()
-    for a in (verts, faces):
-        h.update(str(a.shape).encode())
-        h.update(np.ascontiguousarray(a).tobytes())
-    return h.hexdigest()
 
 
 # ----------------------------------------------------------------------------------------------------------------

@@ -17,6 +17,7 @@ import trimesh
 
 from ffcgs_jax import files
 from ffcgs_jax.errors import FfcgsError
+from ffcgs_jax.geometry import mesh_io
 from ffcgs_jax.physics import collision
 from ffcgs_jax.physics.config import PhysicsConfig
 
@@ -29,9 +30,7 @@ def cache_dir() -> Path:
 
 
 def _key(mesh: trimesh.Trimesh, cfg: PhysicsConfig) -> str:
-    h = hashlib.sha256()
-    h.update(np.ascontiguousarray(mesh.vertices, np.float64).tobytes())
-    h.update(np.ascontiguousarray(mesh.faces, np.int64).tobytes())
+    h = hashlib.sha256(mesh_io.mesh_sha256(mesh).encode())
     settings = dict(v=_VERSION, t=cfg.coacd_threshold, n=cfg.max_hulls, k=cfg.hull_vertices, c=cfg.collision,
                     cells=cfg.voxel_cells, tol=cfg.voxel_tol)  # not the budget: only finished parts are cached
     h.update(json.dumps(settings, sort_keys=True).encode())

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import hashlib
 from pathlib import Path
 
 import numpy as np
@@ -19,12 +20,15 @@ def find_mesh(name: str, sha256: str, config: dict, objects_dir: Path | None):
 
     if name.startswith("proc_"):
         mesh = procedural.shape(int(config.get("seed", 0)), int(name.split("_")[1]))[1]
-        return mesh if dataset_build.mesh_sha256(mesh) == sha256 else None
+        return mesh if mesh_io.mesh_sha256(mesh) == sha256 else None
     if objects_dir is None:
         return None
     for p in sorted(objects_dir.glob(f"{name}.*")):
-        if p.suffix.lower() in dataset_build.MESH_SUFFIXES and dataset_build.file_sha256(p) == sha256:
-            return mesh_io.load_mesh(p)
+        if p.suffix.lower() in dataset_build.MESH_SUFFIXES:
+            mesh = mesh_io.load_mesh(p)
+            # datasets built before the geometry hash recorded the file's bytes
+            if sha256 in (mesh_io.mesh_sha256(mesh), hashlib.sha256(p.read_bytes()).hexdigest()):
+                return mesh
     return None
 
 

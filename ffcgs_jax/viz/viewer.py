@@ -267,11 +267,13 @@ def _on_demand(server, view: GraspView, cfg: dict) -> None:
     def samples():
         from ffcgs_jax.hand import sites
         from ffcgs_jax.synthesis import samplers
+        from ffcgs_jax.config import from_dict
         from ffcgs_jax.synthesis.config import FilterConfig, SamplerConfig
 
         name = cfg.get("sampler", "geometric")
-        sampling = SamplerConfig(**cfg.get("sampling", {}))
-        filters = FilterConfig(**cfg.get("filters", {}))
+        # the file's recorded config, checked as any config file is: an edited or older file gets one line
+        sampling = from_dict(SamplerConfig, cfg.get("sampling", {}), "sampling.")
+        filters = from_dict(FilterConfig, cfg.get("filters", {}), "filters.")
         poses = np.asarray(samplers.make_sampler(name, view.hand, sampling, filters)(
             jax.random.PRNGKey(int(cfg.get("seed", 0))), grid(), len(view.data["q"])))
         palm = sites.palm_centre_root(view.hand)
