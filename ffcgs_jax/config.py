@@ -44,7 +44,9 @@ def from_dict(cls: type[T], data: Any, where: str = "") -> T:
         raise FfcgsError(f"config section {where.rstrip('.') or '<top>'} must be a table, got {type(data).__name__}")
     fields = {f.name: f for f in dataclasses.fields(cls)}
     hints = typing.get_type_hints(cls)
-    unknown = sorted(set(data) - set(fields))
+    # keys as printable text: a TOML quoted key may hold a newline (the message must stay one line), and a dict
+    # built in Python may have non-string keys (which `where + k` and sorting would trip on)
+    unknown = sorted(k if isinstance(k, str) and k.isprintable() else repr(k) for k in set(data) - set(fields))
     if unknown:
         raise FfcgsError(
             f"unknown config key(s) {', '.join(where + k for k in unknown)}; "
@@ -107,6 +109,8 @@ def read_toml(path: str | Path) -> dict:
         return tomllib.loads(text)
     except tomllib.TOMLDecodeError as e:
         raise FfcgsError(f"config file {path} is not valid TOML: {e}") from None
+    except RecursionError:  # tomllib recurses per nesting level: `a = [[[...]]]` a thousand deep
+        raise FfcgsError(f"config file {path} is not a usable config: its arrays or tables nest too deep") from None
 
 
 def split_config_arg(argv: list[str]) -> tuple[str | None, list[str]]:

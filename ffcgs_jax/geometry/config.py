@@ -2,7 +2,7 @@
 
 import dataclasses
 
-from ffcgs_jax.config import check_integer, check_range
+from ffcgs_jax.config import check_integer, check_range, is_finite
 from ffcgs_jax.errors import FfcgsError
 
 
@@ -27,5 +27,5 @@ class SDFConfig:
         check_integer("sdf.res", self.res, 16, 128)
         check_range("sdf.margin", self.margin, 0.0, 2.0)
         check_range("sdf.min_margin", self.min_margin, 0.0, 1.0)
-        if not self.scale > 0:
-            raise FfcgsError(f"sdf.scale must be > 0, got {self.scale}")
+        if not (is_finite(self.scale) and self.scale > 0):  # inf would scale every vertex to inf
+            raise FfcgsError(f"sdf.scale must be > 0 and finite, got {self.scale}")

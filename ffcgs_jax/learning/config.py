@@ -179,7 +179,9 @@ def to_toml(cfg: Any) -> str:
         if isinstance(v, bool):
             return "true" if v else "false"
         if isinstance(v, str):
-            return '"' + v.replace("\\", "\\\\").replace('"', '\\"') + '"'
+            # TOML's basic strings hold no raw control characters (a newline in a path would break the file)
+            return '"' + "".join(c if c not in '"\\' and 0x20 <= ord(c) != 0x7F else f"\\u{ord(c):04x}"
+                                 for c in v) + '"'
         if isinstance(v, float):
             return repr(v) if math.isfinite(v) else ("inf" if v > 0 else "-inf" if v < 0 else "nan")
         if isinstance(v, (tuple, list)):
