@@ -289,9 +289,10 @@ def evaluate(spec: HandSpec, mesh: trimesh.Trimesh, wrist_pose, q, cfg: PhysicsC
     return out
 
 
-def evaluate_grasps(hand, mesh: trimesh.Trimesh, grasps, cfg: PhysicsConfig = PhysicsConfig(), protocols=None,
-                    which=None, backend: str | None = None, table_z: float | None = None,
-                    progress: Callable[[int], None] | None = None, parts=None) -> dict[str, np.ndarray]:
+# hand, mesh, grasps and cfg unannotated: a wrong type is refused with FfcgsError here, not by a type checker
+def evaluate_grasps(hand, mesh, grasps, cfg=PhysicsConfig(), protocols=None, which=None, backend: str | None = None,
+                    table_z: float | None = None, progress: Callable[[int], None] | None = None, parts=None
+                    ) -> dict[str, np.ndarray]:
     """`evaluate` in `synthesize`'s argument order (`fj.evaluate_physics`): the physics test of a grasp set.
 
     Args:
