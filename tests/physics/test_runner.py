@@ -315,25 +315,25 @@ def test_evaluate_physics_is_evaluate_on_a_grasp_set():
 
 
 @pytest.mark.parametrize("call,message", [
-    (lambda T, q: dict(hand=3), "hand must be a Hand"),
-    (lambda T, q: dict(mesh="ball"), "mesh must be a trimesh.Trimesh"),
-    (lambda T, q: dict(grasps=[T, q]), "grasps must be a GraspSet or a dict"),
-    (lambda T, q: dict(grasps={"q": q}), "grasps have no wrist_pose"),
-    (lambda T, q: dict(grasps={"wrist_pose": T[0], "q": q}), r"wrist_pose must have shape \(B, 4, 4\)"),
-    (lambda T, q: dict(grasps={"wrist_pose": T, "q": q[:, :5]}), r"q must have shape \(2, 9\)"),
-    (lambda T, q: dict(grasps={"wrist_pose": T, "q": q.astype(str)}), "q must hold real numbers"),
-    (lambda T, q: dict(cfg={"friction": 1.0}), "cfg must be a PhysicsConfig"),
-    (lambda T, q: dict(which=[5]), "out of range for 2 grasps"),
-    (lambda T, q: dict(which=[0.5]), "which must be grasp indices"),
-    (lambda T, q: dict(which=[True]), r"which as a mask must have shape \(2,\)"),
-    (lambda T, q: dict(which=[]), "no grasps to test"),
-    (lambda T, q: dict(protocols="drop"), "unknown protocol 'drop'"),
+    (lambda T, q: {"hand": 3}, "hand must be a Hand"),
+    (lambda T, q: {"mesh": "ball"}, "mesh must be a trimesh.Trimesh"),
+    (lambda T, q: {"grasps": [T, q]}, "grasps must be a GraspSet or a dict"),
+    (lambda T, q: {"grasps": {"q": q}}, "grasps have no wrist_pose"),
+    (lambda T, q: {"grasps": {"wrist_pose": T[0], "q": q}}, r"wrist_pose must have shape \(B, 4, 4\)"),
+    (lambda T, q: {"grasps": {"wrist_pose": T, "q": q[:, :5]}}, r"q must have shape \(2, 9\)"),
+    (lambda T, q: {"grasps": {"wrist_pose": T, "q": q.astype(str)}}, "q must hold real numbers"),
+    (lambda T, q: {"cfg": {"friction": 1.0}}, "cfg must be a PhysicsConfig"),
+    (lambda T, q: {"which": [5]}, "out of range for 2 grasps"),
+    (lambda T, q: {"which": [0.5]}, "which must be grasp indices"),
+    (lambda T, q: {"which": [True]}, r"which as a mask must have shape \(2,\)"),
+    (lambda T, q: {"which": []}, "no grasps to test"),
+    (lambda T, q: {"protocols": "drop"}, "unknown protocol 'drop'"),
 ])
 def test_evaluate_physics_bad_input_one_line(call, message):
     import ffcgs_jax as fj
 
     Ts, qs = _grasps(2)
-    args = dict(hand=SPEC, mesh=BALL, grasps={"wrist_pose": Ts, "q": qs}, cfg=FAST) | call(Ts, qs)
+    args = {"hand": SPEC, "mesh": BALL, "grasps": {"wrist_pose": Ts, "q": qs}, "cfg": FAST} | call(Ts, qs)
     with pytest.raises(fj.FfcgsError, match=message) as e:
         fj.evaluate_physics(**args)
     assert "\n" not in str(e.value)
