@@ -312,6 +312,10 @@ def test_evaluate_physics_is_evaluate_on_a_grasp_set():
     for k in old:
         np.testing.assert_array_equal(new[k], old[k], err_msg=k)
         np.testing.assert_array_equal(by_name[k], old[k][::-1], err_msg=k)
+    table = fj.summary(new).splitlines()  # what `ffcgs eval` prints, of the protocols the results hold
+    assert [line.split("  ")[0] for line in table] == ["six-dir success (all)", "six-dir failures"], table
+    with pytest.raises(fj.FfcgsError, match="no lift-shake outcome"):
+        fj.summary(new, ["lift-shake"])
 
 
 @pytest.mark.parametrize("call,message", [
