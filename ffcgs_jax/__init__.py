@@ -9,6 +9,7 @@ The public API is the handful of names below; each is imported on first use, so 
     hand, mesh = fj.load_hand("svh"), fj.load_mesh("mug")
     gs = fj.synthesize(hand, mesh, fj.GraspConfig(n=32))
     gs = fj.validate(hand, mesh, gs)   # physics-checked: the grasps that hold first (gs.order())
+    res = fj.evaluate_physics(hand, mesh, gs, which=gs.order()[:2])   # the physics test's per-grasp results
     for r in fj.synthesize_many(hand, ["mug", "meshes/"]): ...   # many objects, the next loading meanwhile
 """
 
@@ -23,9 +24,13 @@ _API = {
     "load_mesh": ("ffcgs_jax.geometry.mesh_io", "load_mesh"),
     "build_sdf": ("ffcgs_jax.geometry.sdf", "build_sdf"),
     "from_depth": ("ffcgs_jax.geometry.depth_object", "from_depth"),
+    "render_depth": ("ffcgs_jax.geometry.depth_render", "render_views"),
+    "load_frames": ("ffcgs_jax.geometry.depth_io", "load_frames"),
+    "save_frames": ("ffcgs_jax.geometry.depth_io", "write_frames"),
     "synthesize": ("ffcgs_jax.synthesis.grasp", "synthesize"),
     "synthesize_many": ("ffcgs_jax.synthesis.many", "synthesize_many"),
-    "evaluate_physics": ("ffcgs_jax.physics.runner", "evaluate"),
+    "check_on_mesh": ("ffcgs_jax.synthesis.grasp", "check_on_mesh"),
+    "evaluate_physics": ("ffcgs_jax.physics.runner", "evaluate_grasps"),
     "validate": ("ffcgs_jax.physics.validate", "validate"),
     "GraspSet": ("ffcgs_jax.synthesis.grasp", "GraspSet"),
     "load_grasps": ("ffcgs_jax.synthesis.grasp", "load_grasps"),
@@ -36,29 +41,46 @@ _API = {
     "EnergyConfig": ("ffcgs_jax.synthesis.config", "EnergyConfig"),
     "SDFConfig": ("ffcgs_jax.geometry.config", "SDFConfig"),
     "PhysicsConfig": ("ffcgs_jax.physics.config", "PhysicsConfig"),
+    "PROTOCOLS": ("ffcgs_jax.physics.config", "PROTOCOLS"),
+    "build_dataset": ("ffcgs_jax.dataset.build", "build"),
+    "DatasetConfig": ("ffcgs_jax.dataset.config", "DatasetConfig"),
+    "train_sampler": ("ffcgs_jax.learning.train", "train"),
+    "TrainConfig": ("ffcgs_jax.learning.config", "TrainConfig"),
     "FfcgsError": ("ffcgs_jax.errors", "FfcgsError"),
     "enable_compilation_cache": ("ffcgs_jax.runtime.jax_cache", "enable"),
     "clear_compiled": ("ffcgs_jax.synthesis.grasp", "clear_compiled"),
     "plot_grasps": ("ffcgs_jax.viz.grasp_plot", "grasps_image"),
     "show": ("ffcgs_jax.viz.viewer", "show_grasps"),
+    "plot_sdf": ("ffcgs_jax.viz.sdf_plot", "slices_image"),
+    "summary": ("ffcgs_jax.viz.summary", "summary"),
 }
 __all__ = ["__version__", *_API]
 
 if TYPE_CHECKING:  # what the lazy names are, for type checkers and editors
+    from ffcgs_jax.dataset.build import build as build_dataset  # noqa: F401
+    from ffcgs_jax.dataset.config import DatasetConfig  # noqa: F401
     from ffcgs_jax.errors import FfcgsError  # noqa: F401
     from ffcgs_jax.geometry.config import SDFConfig  # noqa: F401
+    from ffcgs_jax.geometry.depth_io import load_frames  # noqa: F401
+    from ffcgs_jax.geometry.depth_io import write_frames as save_frames  # noqa: F401
     from ffcgs_jax.geometry.depth_object import from_depth  # noqa: F401
+    from ffcgs_jax.geometry.depth_render import render_views as render_depth  # noqa: F401
     from ffcgs_jax.geometry.mesh_io import load_mesh  # noqa: F401
     from ffcgs_jax.geometry.sdf import build_sdf  # noqa: F401
     from ffcgs_jax.hand.kinematics import load_hand  # noqa: F401
-    from ffcgs_jax.physics.config import PhysicsConfig  # noqa: F401
-    from ffcgs_jax.physics.runner import evaluate as evaluate_physics  # noqa: F401
+    from ffcgs_jax.learning.config import TrainConfig  # noqa: F401
+    from ffcgs_jax.learning.train import train as train_sampler  # noqa: F401
+    from ffcgs_jax.physics.config import PROTOCOLS, PhysicsConfig  # noqa: F401
+    from ffcgs_jax.physics.runner import evaluate_grasps as evaluate_physics  # noqa: F401
     from ffcgs_jax.physics.validate import validate  # noqa: F401
     from ffcgs_jax.runtime.jax_cache import enable as enable_compilation_cache  # noqa: F401
     from ffcgs_jax.synthesis.config import EnergyConfig, GraspConfig, OptimConfig, load_config  # noqa: F401
-    from ffcgs_jax.synthesis.grasp import GraspSet, clear_compiled, load_grasps, save_grasps, synthesize  # noqa: F401
+    from ffcgs_jax.synthesis.grasp import (  # noqa: F401
+        GraspSet, check_on_mesh, clear_compiled, load_grasps, save_grasps, synthesize)
     from ffcgs_jax.synthesis.many import synthesize_many  # noqa: F401
     from ffcgs_jax.viz.grasp_plot import grasps_image as plot_grasps  # noqa: F401
+    from ffcgs_jax.viz.sdf_plot import slices_image as plot_sdf  # noqa: F401
+    from ffcgs_jax.viz.summary import summary  # noqa: F401
     from ffcgs_jax.viz.viewer import show_grasps as show  # noqa: F401
 
 

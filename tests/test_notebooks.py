@@ -5,6 +5,7 @@ dir put first on JUPYTER_PATH, so a user-level or system `python3` kernelspec po
 shadow the venv (ipykernel's own spec in the venv would also work in a fresh `pip install -e ".[test]"`).
 """
 
+import ast
 import json
 import os
 import sys
@@ -62,6 +63,41 @@ def test_outputs_stripped(path):
             assert cell.execution_count is None, f"{path.name} cell {i} has an execution count"
 
 
+def package_imports(code: str) -> list[str]:
+    """The imports of ffcgs_jax in `code` other than `import ffcgs_jax [as fj]`: a submodule, or a name from it."""
+    bad = []
+    for node in ast.walk(ast.parse(code)):
+        if isinstance(node, ast.Import):
+            bad += [a.name for a in node.names if a.name.startswith("ffcgs_jax.")]
+        elif isinstance(node, ast.ImportFrom) and (node.module or "").split(".")[0] == "ffcgs_jax":
+            bad.append(f"from {node.module} import {', '.join(a.name for a in node.names)}")
+    return bad
+
+
+def test_package_imports_are_found():
+    assert package_imports("import ffcgs_jax as fj\nimport ffcgs_jax\nimport numpy as np") == []
+    assert package_imports("import ffcgs_jax.hand.kinematics as K") == ["ffcgs_jax.hand.kinematics"]
+    assert package_imports("from ffcgs_jax import synthesize") == ["from ffcgs_jax import synthesize"]
+    assert package_imports("if x:\n    from ffcgs_jax.viz import viewer") == ["from ffcgs_jax.viz import viewer"]
+
+
+# no parametrize marks: the slow notebooks are checked too, the check is cheap
+@pytest.mark.parametrize("path", NOTEBOOKS, ids=[p.name for p in NOTEBOOKS])
+def test_notebook_uses_only_the_public_api(path):
+    """A notebook is what users copy: `import ffcgs_jax as fj` and the public names (`ffcgs_jax.__all__`) only."""
+    import ffcgs_jax
+
+    nb = nbformat.read(path, as_version=4)
+    for i, cell in enumerate(nb.cells):
+        if cell.cell_type != "code":
+            continue
+        code = "\n".join(line for line in cell.source.splitlines() if not line.lstrip().startswith(("%", "!")))
+        assert not package_imports(code), f"{path.name} cell {i} imports {package_imports(code)}: use fj.<name>"
+        used = {n.attr for n in ast.walk(ast.parse(code))
+                if isinstance(n, ast.Attribute) and isinstance(n.value, ast.Name) and n.value.id == "fj"}
+        assert used <= set(ffcgs_jax.__all__), f"{path.name} cell {i} uses non-public {used - set(ffcgs_jax.__all__)}"
+
+
 @pytest.mark.parametrize("path", PARAMS)
 def test_notebook_runs(path, kernel_env):
     nb = nbformat.read(path, as_version=4)
@@ -70,11 +106,11 @@ def test_notebook_runs(path, kernel_env):
     client.execute()  # raises CellExecutionError on the first failing cell
     if path.name == "quickstart.ipynb":
         code = [c for c in nb.cells if c.cell_type == "code"]
-        picture = [c for c in code if "grasps_image" in c.source]
+        picture = [c for c in code if "fj.plot_grasps" in c.source]
         plot = [c for c in code if "plt.subplots" in c.source]
         assert picture and _images(picture[0]), "the grasp picture cell shows no image/png"
         assert plot and _images(plot[0]), "the energy plot cell shows no image"
-        shown = [c for c in code if "show_grasps" in c.source]
+        shown = [c for c in code if "fj.show(" in c.source]
         html = "".join(o.get("data", {}).get("text/html", "") for c in shown for o in c.get("outputs", []))
         try:
             import viser  # noqa: F401

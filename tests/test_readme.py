@@ -30,6 +30,19 @@ def test_readme_api_uses_only_the_public_names():
     assert "..." not in api_block() and imported <= {"numpy", "ffcgs_jax"}, imported
 
 
+def test_readme_python_imports_only_the_package():
+    """Every python block of README: `import ffcgs_jax [as fj]`, never a submodule or a name from one."""
+    blocks = re.findall(r"```python\n(.*?)```", (REPO / "README.md").read_text(), re.S)
+    assert blocks
+    for code in blocks:
+        for node in ast.walk(ast.parse(code)):
+            if isinstance(node, ast.Import):
+                names = [a.name for a in node.names if a.name.startswith("ffcgs_jax.")]
+                assert not names, f"README imports {names}: use fj.<name>"
+            elif isinstance(node, ast.ImportFrom):
+                assert (node.module or "").split(".")[0] != "ffcgs_jax", f"README imports from {node.module}"
+
+
 @pytest.mark.e2e  # README's Python block end to end
 def test_readme_api_runs_as_written(tmp_path):
     env = dict(os.environ, JAX_PLATFORMS="cpu", FFCGS_JAX_CACHE="off")

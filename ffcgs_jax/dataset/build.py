@@ -36,6 +36,7 @@ import numpy as np
 import trimesh
 
 from ffcgs_jax import files
+from ffcgs_jax.config import check_all
 from ffcgs_jax.files import duplicate_stems
 from ffcgs_jax.dataset import mcap_io as dataset_io
 from ffcgs_jax.dataset import schema
@@ -258,7 +259,10 @@ def build(cfg: DatasetConfig, show_progress: bool = True) -> dict:
     from ffcgs_jax.hand import spec as hand_spec
     from ffcgs_jax.physics import runner as physics_runner
 
-    cfg.check()
+    # `fj.build_dataset` lands here with no CLI parsing before it: nested configs are checked too
+    if not isinstance(cfg, DatasetConfig):
+        raise FfcgsError(f"build takes a DatasetConfig, got {type(cfg).__name__}")
+    check_all(cfg)
     srcs = sources(cfg)
     parts = dataset_io.parts_dir_for(cfg.out)
     if not cfg.annotate and not dataset_io.done_records(parts) \

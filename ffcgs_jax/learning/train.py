@@ -25,6 +25,7 @@ import numpy as np
 from tqdm import tqdm
 
 from ffcgs_jax import files
+from ffcgs_jax.config import check_all
 from ffcgs_jax.version import __version__
 from ffcgs_jax.errors import FfcgsError
 from ffcgs_jax.hand import kinematics as K
@@ -175,6 +176,10 @@ def train(cfg: TrainConfig, hand: str | None = None, progress: bool = True, unti
 
     `until_epoch` stops after that many epochs, checkpointed, as an interruption would (time-boxed sessions,
     tests); returns None then, and a later call with the same config continues."""
+    # `fj.train_sampler` lands here with no CLI parsing before it: a wrong config is refused in one line
+    if not isinstance(cfg, TrainConfig):
+        raise FfcgsError(f"train takes a TrainConfig, got {type(cfg).__name__}")
+    check_all(cfg)
     out = Path(cfg.out).expanduser()
     text = to_toml(cfg)
     cfg_path, ckpt_path, log_path = out / "config.toml", out / "checkpoint.npz", out / "metrics.jsonl"

@@ -291,3 +291,53 @@ def test_the_wrist_weld_holds_the_hand_where_it_is_put(hand):
     got = d.qpos[s.root_qpos: s.root_qpos + 7]
     assert np.linalg.norm(got[:3] - pos) < 1e-3
     assert 2 * np.degrees(np.arccos(min(1.0, abs(float(got[3:] @ quat))))) < 0.5
+
+
+# --- fj.evaluate_physics: evaluate in synthesize's order --------------------------------------------------------
+
+
+def test_evaluate_physics_is_evaluate_on_a_grasp_set():
+    import ffcgs_jax as fj
+    from ffcgs_jax.synthesis.grasp import GraspSet
+
+    Ts, qs = _grasps(3)
+    squeeze = np.tile(np.linspace(0.2, 1.0, 9), (3, 1)) / 2
+    gs = GraspSet({"wrist_pose": Ts, "q": qs, "squeeze_dir": squeeze}, {}, fj.GraspConfig(), "ball")
+    old = physics.evaluate(SPEC, BALL, Ts[[2, 0]], qs[[2, 0]], FAST, ("six-dir",), "cpu",
+                           squeeze_dir=squeeze[[2, 0]])
+    new = fj.evaluate_physics(fj.load_hand("svh"), BALL, gs, FAST, "six-dir", which=[2, 0], backend="cpu")
+    by_name = fj.evaluate_physics("svh", BALL, {"wrist_pose": Ts, "q": qs, "squeeze_dir": squeeze}, FAST,
+                                  ["six-dir"], which=np.array([True, False, True]), backend="cpu")  # 0 then 2
+    assert set(new) == set(old)
+    for k in old:
+        np.testing.assert_array_equal(new[k], old[k], err_msg=k)
+        np.testing.assert_array_equal(by_name[k], old[k][::-1], err_msg=k)
+    table = fj.summary(new).splitlines()  # what `ffcgs eval` prints, of the protocols the results hold
+    assert [line.split("  ")[0] for line in table] == ["six-dir success (all)", "six-dir failures"], table
+    with pytest.raises(fj.FfcgsError, match="no lift-shake outcome"):
+        fj.summary(new, ["lift-shake"])
+
+
+@pytest.mark.parametrize("call,message", [
+    (lambda T, q: {"hand": 3}, "hand must be a Hand"),
+    (lambda T, q: {"mesh": "ball"}, "mesh must be a trimesh.Trimesh"),
+    (lambda T, q: {"grasps": [T, q]}, "grasps must be a GraspSet or a dict"),
+    (lambda T, q: {"grasps": {"q": q}}, "grasps have no wrist_pose"),
+    (lambda T, q: {"grasps": {"wrist_pose": T[0], "q": q}}, r"wrist_pose must have shape \(B, 4, 4\)"),
+    (lambda T, q: {"grasps": {"wrist_pose": T, "q": q[:, :5]}}, r"q must have shape \(2, 9\)"),
+    (lambda T, q: {"grasps": {"wrist_pose": T, "q": q.astype(str)}}, "q must hold real numbers"),
+    (lambda T, q: {"cfg": {"friction": 1.0}}, "cfg must be a PhysicsConfig"),
+    (lambda T, q: {"which": [5]}, "out of range for 2 grasps"),
+    (lambda T, q: {"which": [0.5]}, "which must be grasp indices"),
+    (lambda T, q: {"which": [True]}, r"which as a mask must have shape \(2,\)"),
+    (lambda T, q: {"which": []}, "no grasps to test"),
+    (lambda T, q: {"protocols": "drop"}, "unknown protocol 'drop'"),
+])
+def test_evaluate_physics_bad_input_one_line(call, message):
+    import ffcgs_jax as fj
+
+    Ts, qs = _grasps(2)
+    args = {"hand": SPEC, "mesh": BALL, "grasps": {"wrist_pose": Ts, "q": qs}, "cfg": FAST} | call(Ts, qs)
+    with pytest.raises(fj.FfcgsError, match=message) as e:
+        fj.evaluate_physics(**args)
+    assert "\n" not in str(e.value)
