@@ -38,8 +38,12 @@ def is_finite(value: Any) -> bool:
     return isinstance(value, (int, float)) and math.isfinite(value)
 
 
-def from_dict(cls: type[T], data: Any, where: str = "") -> T:
-    """Build dataclass `cls` from a nested dict, naming any unknown key and listing the valid ones."""
+def from_dict(cls: type[T], data: Any, where: str = "", base: Any = None) -> T:
+    """Build dataclass `cls` from a nested dict, naming any unknown key and listing the valid ones.
+
+    Keys a table leaves out keep their defaults, and a nested table changes only the keys it names: its other keys
+    keep the enclosing config's default for that section (`base`), not the section class's own defaults (a
+    dataset's `[grasp]` table with only `n` keeps the dataset's geometric sampler)."""
     if not isinstance(data, dict):
         raise FfcgsError(f"config section {where.rstrip('.') or '<top>'} must be a table, got {type(data).__name__}")
     fields = {f.name: f for f in dataclasses.fields(cls)}
@@ -56,12 +60,19 @@ def from_dict(cls: type[T], data: Any, where: str = "") -> T:
     for name, value in data.items():
         hint = hints[name]
         if dataclasses.is_dataclass(hint):
-            kwargs[name] = from_dict(hint, value, f"{where}{name}.")
+            inner = getattr(base, name) if base is not None else _default(fields[name])
+            kwargs[name] = from_dict(hint, value, f"{where}{name}.", inner)
         else:
             kwargs[name] = coerce(hint, value, where + name)
-    obj = cls(**kwargs)
+    obj = cls(**kwargs) if base is None else dataclasses.replace(base, **kwargs)
     check_all(obj)
     return obj
+
+
+def _default(f: dataclasses.Field) -> Any:
+    if f.default is not dataclasses.MISSING:
+        return f.default
+    return f.default_factory() if f.default_factory is not dataclasses.MISSING else None
 
 
 def coerce(hint: Any, value: Any, name: str) -> Any:

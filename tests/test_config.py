@@ -106,3 +106,15 @@ def test_integer_fields_refuse_floats_and_bools(cls, field):
         object.__setattr__(obj, field, bad)  # past the suite's runtime type checks: what a TOML typo or a plain run gives
         with pytest.raises(FfcgsError, match=f"{field} must be an integer"):
             check_all(obj)
+
+
+def test_a_partial_section_keeps_the_enclosing_configs_defaults():
+    """A dataset's [grasp] table naming only n keeps the dataset's own grasp defaults (its geometric sampler), not
+    GraspConfig's: one TOML key changes one setting."""
+    from ffcgs_jax.dataset.config import DatasetConfig
+
+    default = DatasetConfig()
+    cfg = from_dict(DatasetConfig, {"grasp": {"n": 8}})
+    assert cfg.grasp.n == 8
+    assert cfg.grasp == dataclasses.replace(default.grasp, n=8)
+    assert cfg.grasp.sampler == default.grasp.sampler
