@@ -150,6 +150,7 @@ def with_overrides(cls: type[T], argv: list[str], prog: str, keep_prefixes: bool
     import tyro  # only the CLI needs it
 
     path, argv = split_config_arg(argv)
+    argv = respell_flags(cls, argv, keep_prefixes)
     default = cls() if path is None else load(cls, path)
     captured = io.StringIO()
     try:
@@ -165,6 +166,41 @@ def with_overrides(cls: type[T], argv: list[str], prog: str, keep_prefixes: bool
     sys.stderr.write(captured.getvalue())  # tyro's warnings, if any
     check_all(cfg)
     return cfg
+
+
+def leaf_paths(cls: type) -> list[str]:
+    """Dotted paths of a config's settings (`optim.iters`), nested sections walked."""
+    hints = typing.get_type_hints(cls)
+    out = []
+    for f in dataclasses.fields(cls):
+        if dataclasses.is_dataclass(hints[f.name]):
+            out += [f"{f.name}.{p}" for p in leaf_paths(hints[f.name])]
+        else:
+            out.append(f.name)
+    return out
+
+
+def respell_flags(cls: type, argv: list[str], keep_prefixes: bool) -> list[str]:
+    """Both spellings of a nested setting on every command: `--optim.iters 50` where flags are bare (`ffcgs grasp`),
+    and `--population 64` where they keep their section (`ffcgs dataset build`) when only one section has that
+    name. Each is rewritten to the command's own spelling, so help and errors stay the parser's."""
+    paths = {p.replace("_", "-"): p for p in leaf_paths(cls)}
+    by_leaf: dict[str, list[str]] = {}
+    for p in paths:
+        by_leaf.setdefault(p.rsplit(".", 1)[-1], []).append(p)
+    out = []
+    for a in argv:
+        flag, eq, value = a.partition("=")
+        if not flag.startswith("--") or flag == "--":
+            out.append(a)
+            continue
+        name = flag[2:].replace("_", "-")
+        if not keep_prefixes and "." in name and name in paths and len(by_leaf[name.rsplit(".", 1)[-1]]) == 1:
+            flag = "--" + name.rsplit(".", 1)[-1]
+        elif keep_prefixes and "." not in name and len(by_leaf.get(name, ())) == 1 and "." in by_leaf[name][0]:
+            flag = "--" + by_leaf[name][0]
+        out.append(flag + eq + value)
+    return out
 
 
 _BOX = "│╭╮╰╯─┃┏┓┗┛━"

@@ -118,3 +118,21 @@ def test_a_partial_section_keeps_the_enclosing_configs_defaults():
     assert cfg.grasp.n == 8
     assert cfg.grasp == dataclasses.replace(default.grasp, n=8)
     assert cfg.grasp.sampler == default.grasp.sampler
+
+
+def test_nested_settings_take_either_spelling_on_every_command():
+    """`--optim.iters` works where flags are bare (grasp) and `--population` where they keep their section (dataset
+    build, when one section alone has the name); both parse to the same config as the command's own spelling."""
+    from ffcgs_jax.config import with_overrides
+    from ffcgs_jax.dataset.config import DatasetConfig
+    from ffcgs_jax.synthesis.config import GraspConfig
+
+    bare = with_overrides(GraspConfig, ["--iters", "7"], "t")
+    dotted = with_overrides(GraspConfig, ["--optim.iters", "7"], "t")
+    assert bare == dotted and dotted.optim.iters == 7
+    prefixed = with_overrides(DatasetConfig, ["--planner.population", "1024", "--objects", "x"], "t", keep_prefixes=True)
+    short = with_overrides(DatasetConfig, ["--population=1024", "--objects", "x"], "t", keep_prefixes=True)
+    assert prefixed == short and short.planner.population == 1024
+    # a name several sections share stays ambiguous: the parser refuses it with its own one line
+    with pytest.raises(FfcgsError):
+        with_overrides(DatasetConfig, ["--seed-that-is-not-a-flag", "1"], "t", keep_prefixes=True)
