@@ -45,7 +45,7 @@ from ffcgs_jax.errors import FfcgsError
 from ffcgs_jax.kernels import lp_pallas
 from ffcgs_jax.types import Array, Bool, Float, Int
 
-MAX_ITER = 100  # pivots; instances of this size took at most about 40 (tests/synthesis/test_lp_jax.py)
+MAX_ITER = 100  # pivots; instances of this size took at most about 40 (tests/kernels/test_lp_jax.py)
 BLAND_AFTER = 8
 # Pivots per while-loop trip (the inverse is refreshed after each trip). With XLA pivots on a GPU each trip cost a
 # device-to-host check of the loop condition and a dozen launches: 8 measured 46 ms against 51 ms for 4 and 56 ms
