@@ -1,7 +1,7 @@
 """Synthetic depth frames of a mesh on a table, for tests and demos of TSDF fusion (host NumPy and trimesh).
 
 Depth is ray cast: one ray through each pixel centre, against the mesh's triangles (Moller-Trumbore, each triangle
-against the pixels of its projected bounding box only), against the table plane z = table_z, and against the
+against the pixels its projection covers only), against the table plane z = table_z, and against the
 triangles of a background scene if one is given (a finite table, a floor, a wall, other objects: `depth_scene`),
 which are clipped at the camera's plane first, as a room around the camera reaches behind it. Cameras follow
 `depth_io`'s conventions (OpenCV axes, depth = camera z, camera-to-world poses, world z up). trimesh's intersector
@@ -21,6 +21,7 @@ import trimesh
 
 from ffcgs_jax.errors import FfcgsError
 from ffcgs_jax.geometry.depth_io import Frames, pixel_rays, transform
+from ffcgs_jax.kernels.triangles import rasterise
 from ffcgs_jax.types import Bool, Float
 
 FOCAL_640 = 615.0  # px: a RealSense D435's colour-aligned focal length at 640x480
@@ -28,7 +29,8 @@ NOISE_A = 0.0015  # 1/m: sigma = NOISE_A * z^2 (module docstring)
 DROPOUT = 0.02  # share of readings lost
 _MIN_DEPTH = 1e-6  # m: mesh points nearer the camera plane cannot be projected
 _NEAR = 1e-3  # m: background triangles are clipped to camera z >= this (the room extends behind the camera)
-_PAIRS = 1 << 20  # (triangle, pixel) pairs per chunk of `_cast`: ~200 MB of temporaries
+_PAIRS = 1 << 20  # (triangle, pixel) pairs per batch of `_cast`: ~200 MB of temporaries
+_COVER_MARGIN = 0.5  # px: far above the ~1e-10 px by which the ray test and the 2-D cover round apart
 
 
 def camera_K(width: int = 640, height: int = 480) -> Float[np.ndarray, "3 3"]:
@@ -72,28 +74,18 @@ def _cast(tris: np.ndarray, K: np.ndarray, width: int, height: int) -> np.ndarra
     """Camera depth (H * W,) of the nearest of the triangles `tris` (T, 3, 3), in camera coordinates, along each
     pixel-centre ray; inf where none is hit.
 
-    Rays from one point through pixel centres are tested only against the triangles whose projected bounding box
-    holds the pixel (Moller-Trumbore on each such pair), in chunks of triangles, so the work is the projected area
-    rather than rays x triangles.
+    Rays from one point through pixel centres are tested only against the triangles whose projection, widened by
+    half a pixel, holds the pixel (`kernels.triangles.rasterise`), Moller-Trumbore on each such pair, so the work is
+    the projected area rather than rays x triangles. The ray test, not the 2-D cover, decides a hit: the widening
+    only has to cover the rounding by which the two can disagree.
     """
     if not (tris[..., 2] > _MIN_DEPTH).all():
         raise FfcgsError("render_depth: part of the mesh is behind the camera or around it; move the camera back")
     uv = tris @ K.T
     uv = uv[..., :2] / uv[..., 2:]
-    lo = np.clip(np.ceil(uv.min(1) - 0.5 - 1e-9), 0, None).astype(np.int64)  # pixels whose centre may lie inside
-    hi = np.minimum(np.floor(uv.max(1) + 0.5 + 1e-9).astype(np.int64), (width - 1, height - 1))
-    size = np.maximum(hi - lo + 1, 0)  # (T, 2) columns, rows
-    count = size[:, 0] * size[:, 1]
-    depth = np.full(width * height, np.inf)
     Kinv = np.linalg.inv(K)
-    cum = np.cumsum(count)
-    stops = np.unique(np.r_[np.searchsorted(cum, np.arange(_PAIRS, cum[-1], _PAIRS)), len(tris)])
-    for start, stop in zip(np.r_[0, stops[:-1]], stops):
-        tri = np.repeat(np.arange(start, stop), count[start:stop])  # one row per (triangle, pixel) pair
-        k = np.arange(len(tri)) - np.repeat(cum[start:stop] - count[start:stop] - (cum[start - 1] if start else 0),
-                                            count[start:stop])
-        col = lo[tri, 0] + k % size[tri, 0]
-        row = lo[tri, 1] + k // size[tri, 0]
+
+    def fragment(tri, row, col):
         d = col[:, None] * Kinv[:, 0] + row[:, None] * Kinv[:, 1] + Kinv[:, 2]  # ray from the camera centre, z = 1
         v0, e1, e2 = tris[tri, 0], tris[tri, 1] - tris[tri, 0], tris[tri, 2] - tris[tri, 0]
         p = np.cross(d, e2)
@@ -103,9 +95,11 @@ def _cast(tris: np.ndarray, K: np.ndarray, width: int, height: int) -> np.ndarra
         a = -np.einsum("ij,ij->i", v0, p) * inv  # barycentric coordinates of the hit
         b = np.einsum("ij,ij->i", d, q) * inv
         t = np.einsum("ij,ij->i", e2, q) * inv  # ray parameter = camera depth
-        hit = (det != 0) & (a >= 0) & (b >= 0) & (a + b <= 1) & (t > 0)
-        np.minimum.at(depth, (row * width + col)[hit], t[hit])
-    return depth
+        return t, (det != 0) & (a >= 0) & (b >= 0) & (a + b <= 1) & (t > 0)
+
+    # OpenCV pixel centres lie on the integers
+    return rasterise(uv[..., 0], uv[..., 1], width, height, fragment, np.full(width * height, np.inf), np.minimum,
+                     centre=0.0, margin=_COVER_MARGIN, batch=_PAIRS)
 
 
 def clip_near(tris: Float[np.ndarray, "T 3 3"], near: float = _NEAR) -> Float[np.ndarray, "U 3 3"]:

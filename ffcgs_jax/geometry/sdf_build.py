@@ -23,6 +23,7 @@ from scipy.sparse import coo_matrix, csgraph
 from scipy.spatial import cKDTree
 
 from ffcgs_jax.kernels.triangles import closest_offset, orientation, solid_angle_one, tri_table
+from ffcgs_jax.runtime.fixed_shapes import pad_rows
 from ffcgs_jax.types import Float, Int
 
 _BLOCK = 4  # voxels per block edge in the candidate pruning of step 1
@@ -133,7 +134,7 @@ def _exact_distance(tri: np.ndarray, origin: np.ndarray, voxel: float, res: int)
     r_sb = np.sqrt(3.0) * voxel * (n_sub - 1) / 2.0
     sb_items = []
     for s in range(0, len(sb_ijk), _PT_CHUNK):
-        pts = _pad_rows(sb_centre[s : s + _PT_CHUNK], _PT_CHUNK).astype(np.float32)
+        pts = pad_rows(sb_centre[s : s + _PT_CHUNK], _PT_CHUNK).astype(np.float32)
         d2 = np.concatenate([np.asarray(_dist2_dense(pts, table[t : t + _TRI_CHUNK]))
                              for t in range(0, len(table), _TRI_CHUNK)], axis=1)
         d = np.sqrt(d2[: min(_PT_CHUNK, len(sb_ijk) - s), :n_tri])
@@ -192,8 +193,8 @@ def _map_items(kernel, corners, offs, rows):
     out = []
     for s in range(0, len(corners), _ITEM_CHUNK):
         n = len(corners[s : s + _ITEM_CHUNK])
-        c = _pad_rows(corners[s : s + _ITEM_CHUNK], _ITEM_CHUNK).astype(np.float32)
-        out.append(np.asarray(kernel(c, offs, _pad_rows(rows[s : s + _ITEM_CHUNK], _ITEM_CHUNK)))[:n])
+        c = pad_rows(corners[s : s + _ITEM_CHUNK], _ITEM_CHUNK).astype(np.float32)
+        out.append(np.asarray(kernel(c, offs, pad_rows(rows[s : s + _ITEM_CHUNK], _ITEM_CHUNK)))[:n])
     return np.concatenate(out)
 
 
@@ -208,9 +209,9 @@ def _scan_leaves(blocks, tris, block_corner, table, offs, best_d2, best_id):
         ub = b[new]
         pad = _ITEM_CHUNK - n
         low, arg = _group_min(
-            _pad_rows(block_corner[b], _ITEM_CHUNK).astype(np.float32),
+            pad_rows(block_corner[b], _ITEM_CHUNK).astype(np.float32),
             offs,
-            _pad_rows(table[t], _ITEM_CHUNK),
+            pad_rows(table[t], _ITEM_CHUNK),
             np.r_[t, np.zeros(pad, np.int64)].astype(np.int32),
             np.r_[seg, np.full(pad, seg[-1] + 1)].astype(np.int32),
         )
@@ -218,10 +219,6 @@ def _scan_leaves(blocks, tris, block_corner, table, offs, best_d2, best_id):
         better = low < best_d2[ub]
         best_d2[ub] = np.where(better, low, best_d2[ub])
         best_id[ub] = np.where(better, arg, best_id[ub])
-
-
-def _pad_rows(x: np.ndarray, n: int) -> np.ndarray:
-    return np.concatenate([x, np.repeat(x[-1:], n - len(x), axis=0)]) if len(x) < n else x
 
 
 def _closest_float64(points: np.ndarray, tri: np.ndarray, face_id: np.ndarray) -> np.ndarray:
@@ -232,8 +229,8 @@ def _closest_float64(points: np.ndarray, tri: np.ndarray, face_id: np.ndarray) -
         table = jnp.asarray(tri_table(tri, np.float64))
         for s in range(0, len(points), step):
             n = len(points[s : s + step])
-            p = _pad_rows(points[s : s + step], step)
-            f = _pad_rows(face_id[s : s + step], step)
+            p = pad_rows(points[s : s + step], step)
+            f = pad_rows(face_id[s : s + step], step)
             out[s : s + n] = np.asarray(_closest_gather(p, table, f))[:n]
     return out
 
@@ -249,7 +246,7 @@ def _winding(points: np.ndarray, tri_pad: np.ndarray, orient: float) -> np.ndarr
     out = np.zeros(len(points))
     for s in range(0, len(points), _PT_CHUNK):
         n = len(points[s : s + _PT_CHUNK])
-        p = _pad_rows(points[s : s + _PT_CHUNK], _PT_CHUNK).astype(np.float32)
+        p = pad_rows(points[s : s + _PT_CHUNK], _PT_CHUNK).astype(np.float32)
         for t in range(0, len(tri_pad), _TRI_CHUNK):
             out[s : s + n] += np.asarray(_solid_angle_sum(p, tri_pad[t : t + _TRI_CHUNK]), np.float64)[:n]
     return orient * out / (4.0 * np.pi)

@@ -1,7 +1,12 @@
 """Triangle kernels shared by the SDF builders (`sdf_build`, `sdf_device`) and the device evaluation
 (`evaluation.device_metrics`): closest points (Ericson's Voronoi-region test, per triangle and in
 structure-of-arrays form), solid angles (Van Oosterom & Strackee), the triangle table they read, and a mesh's
-orientation. One copy of each, below their users."""
+orientation; and the host scan conversion of screen-space triangles with its z-test, shared by the depth-frame
+ray caster (`geometry.depth_render`) and the software picture renderer (`viz.render_software`). One copy of each,
+below their users."""
+
+from collections.abc import Callable, Iterator
+from typing import NamedTuple
 
 import jax.numpy as jnp
 import numpy as np
@@ -117,3 +122,133 @@ def solid_angles(px, py, pz, t):
     return 2.0 * jnp.arctan2(num, la * lb * lc + ab * lc + ac * lb + bc * la)
 
 
+
+
+# --- scan conversion (host NumPy) --------------------------------------------------------------------------------
+
+_FLAT = 1e-12  # px^2: twice the screen area below which an exact scan drops a triangle (it covers no centre)
+
+
+class Spans(NamedTuple):
+    """Runs of covered pixel centres, one per (triangle, pixel row): triangle `tri` covers columns
+    `start` .. `start + count - 1` of row `row` (all (R,) int64)."""
+
+    tri: np.ndarray
+    row: np.ndarray
+    start: np.ndarray
+    count: np.ndarray
+
+
+def signed_area(sx: np.ndarray, sy: np.ndarray) -> np.ndarray:
+    """Twice the signed screen area of each triangle (T,) from corner coordinates sx, sy (T, 3); positive when the
+    corners run counter-clockwise in (x right, y down) coordinates."""
+    return (sx[:, 1] - sx[:, 0]) * (sy[:, 2] - sy[:, 0]) - (sx[:, 2] - sx[:, 0]) * (sy[:, 1] - sy[:, 0])
+
+
+def scan_spans(sx: np.ndarray, sy: np.ndarray, width: int, height: int, centre: float = 0.5,
+               margin: float = 0.0) -> Spans:
+    """The pixel centres of a width x height image inside each screen-space triangle, row by row (edge functions).
+
+    Args:
+        sx, sy: (T, 3) corner coordinates in pixels (x right, y down).
+        width, height: image size.
+        centre: where pixel (col, row)'s centre lies: (col + centre, row + centre); 0.5 for corner-origin
+            coordinates, 0 for OpenCV's (centres on the integers).
+        margin: 0 for the exact cover. Above 0 a conservative cover for callers that decide coverage themselves
+            (a ray cast): each edge moved out by `margin` px, and triangles thinner than `margin` given their whole
+            bounding box, since their 2-D orientation may be rounding noise.
+
+    Returns:
+        `Spans`, rows of each triangle contiguous, in triangle order.
+    """
+    sx, sy = sx.copy(), sy.copy()  # reordered in place below
+    T = len(sx)
+    area = signed_area(sx, sy)
+    # Orient counter-clockwise so "inside" is the same sign for every edge.
+    flip = area < 0
+    for a in (sx, sy):
+        a[flip, 1], a[flip, 2] = a[flip, 2].copy(), a[flip, 1].copy()
+    area = np.abs(area)
+    y0 = np.maximum(np.ceil(sy.min(1) - (centre + margin)), 0)
+    y1 = np.minimum(np.floor(sy.max(1) - (centre - margin)), height - 1)
+    x0 = np.maximum(np.ceil(sx.min(1) - (centre + margin)), 0)
+    x1 = np.minimum(np.floor(sx.max(1) - (centre - margin)), width - 1)
+    if margin:
+        longest = np.sqrt(np.max((sx - np.roll(sx, 1, 1)) ** 2 + (sy - np.roll(sy, 1, 1)) ** 2, 1))
+        thin = area <= margin * longest  # height over the longest edge below the margin
+        live = np.flatnonzero((y1 >= y0) & (x1 >= x0))
+    else:
+        thin = np.zeros(T, dtype=bool)
+        live = np.flatnonzero((area > _FLAT) & (y1 >= y0) & (x1 >= x0))
+    rows = (y1[live] - y0[live] + 1).astype(np.int64)
+    t = np.repeat(live, rows)
+    y = y0[t] + (np.arange(len(t)) - np.repeat(np.cumsum(rows) - rows, rows))
+    yc = y + centre
+    # Edge k from corner k to corner k+1; a pixel centre is inside when cross(edge, p - start) >= 0 for all k,
+    # i.e. A x + B >= 0 with A = -(ey) and B = ex (yc - sy_k) + ey sx_k.
+    lo = x0[t] + (centre - 1.0)
+    hi = x1[t] + centre
+    empty = np.zeros(len(t), dtype=bool)
+    edged = ~thin[t]
+    for k in range(3):
+        ax, ay = sx[t, k], sy[t, k]
+        ex, ey = sx[t, (k + 1) % 3] - ax, sy[t, (k + 1) % 3] - ay
+        A = -ey
+        B = ex * (yc - ay) + ey * ax
+        if margin:
+            B = B + margin * np.hypot(ex, ey)  # A x + B is the distance to the edge times its length
+        with np.errstate(divide="ignore", invalid="ignore"):
+            bound = -B / A
+        lo = np.where((A > 0) & edged, np.maximum(lo, bound - 1e-9), lo)
+        hi = np.where((A < 0) & edged, np.minimum(hi, bound + 1e-9), hi)
+        empty |= (A == 0) & (B < 0) & edged
+    xs = np.maximum(np.ceil(lo - centre), x0[t]).astype(np.int64)
+    xe = np.minimum(np.floor(hi - centre), x1[t]).astype(np.int64)
+    count = np.where(empty, 0, np.maximum(xe - xs + 1, 0))
+    return Spans(t.astype(np.int64), y.astype(np.int64), xs, count)
+
+
+def span_pixels(spans: Spans, batch: int) -> Iterator[tuple[np.ndarray, np.ndarray, np.ndarray]]:
+    """The covered pixels of `spans` as (triangle, row, column) arrays, about `batch` at a time (at least one
+    span's worth), so callers' per-pixel temporaries stay bounded on big images."""
+    count = spans.count
+    ends = np.cumsum(count)
+    start = 0
+    while start < len(count):
+        stop = int(np.searchsorted(ends, (ends[start - 1] if start else 0) + batch, side="right"))
+        stop = max(stop, start + 1)
+        s = count[start:stop]
+        n = int(s.sum())
+        if n:
+            r = np.repeat(np.arange(start, stop), s)
+            col = spans.start[r] + (np.arange(n) - np.repeat(np.cumsum(s) - s, s))
+            yield spans.tri[r], spans.row[r], col
+        start = stop
+
+
+def rasterise(sx: np.ndarray, sy: np.ndarray, width: int, height: int,
+              fragment: Callable[[np.ndarray, np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray | None]],
+              zbuffer: np.ndarray, nearer: np.ufunc = np.minimum, centre: float = 0.5, margin: float = 0.0,
+              batch: int = 1 << 22) -> np.ndarray:
+    """Scan-convert triangles into `zbuffer` (height * width,), keeping per pixel the nearest fragment.
+
+    Args:
+        sx, sy: (T, 3) screen coordinates of the corners; `centre` and `margin` as in `scan_spans`.
+        width, height: image size.
+        fragment: (triangle, row, column) arrays of covered pixels -> (value, hit): each pixel's value for the
+            z-test and a mask of those that count (None: all), e.g. a depth, or an inverse depth packed with the
+            triangle's index so that the z-test also says which triangle won.
+        zbuffer: (height * width,) values so far, updated in place: the empty value is one `nearer` never keeps.
+        nearer: np.minimum when smaller values are nearer (depth), np.maximum when larger are (inverse depth).
+        batch: pixels per batch (`span_pixels`).
+
+    Returns:
+        `zbuffer`.
+    """
+    for tri, row, col in span_pixels(scan_spans(sx, sy, width, height, centre, margin), batch):
+        value, hit = fragment(tri, row, col)
+        pixel = row * width + col
+        if hit is not None:
+            pixel, value = pixel[hit], value[hit]
+        nearer.at(zbuffer, pixel, value)
+    return zbuffer

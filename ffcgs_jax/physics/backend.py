@@ -70,12 +70,6 @@ class Simulator(Protocol):
     def flagged(self, state: Any) -> np.ndarray: ...
 
 
-def pad_rows(x, n: int) -> np.ndarray:
-    """`x` with its first row repeated up to n rows: backends that keep a fixed batch fill it this way."""
-    x = np.asarray(x)
-    return np.concatenate([x, np.repeat(x[:1], n - len(x), axis=0)]) if len(x) < n else x
-
-
 def mat_to_quat(R: np.ndarray) -> np.ndarray:
     """The unit quaternion (w x y z) of rotation matrix R (3, 3)."""
     q = np.zeros(4)

@@ -33,8 +33,9 @@ import numpy as np
 
 from ffcgs_jax.errors import FfcgsError
 from ffcgs_jax.hand.mjx_import import mjx
-from ffcgs_jax.physics.backend import CHUNK, Batch, Segment, pad_rows, pose_hand
+from ffcgs_jax.physics.backend import CHUNK, Batch, Segment, pose_hand
 from ffcgs_jax.physics.scene import PhysicsScene
+from ffcgs_jax.runtime.fixed_shapes import pad_rows
 
 
 def put_model(model: mujoco.MjModel) -> mjx.Model:

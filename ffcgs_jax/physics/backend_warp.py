@@ -23,8 +23,9 @@ import mujoco
 import numpy as np
 
 from ffcgs_jax.errors import FfcgsError
-from ffcgs_jax.physics.backend import CHUNK, Batch, Segment, pad_rows, pose_hand
+from ffcgs_jax.physics.backend import CHUNK, Batch, Segment, pose_hand
 from ffcgs_jax.physics.scene import PhysicsScene
+from ffcgs_jax.runtime.fixed_shapes import pad_rows
 
 MAX_WORLDS = 8192  # grasps simulated at once: 8192 worlds of the mug scene fit an H100 with room to spare
 MIN_WORLDS = 64  # the smallest batch of worlds survivors move to: below it a step costs about the same
@@ -163,6 +164,7 @@ class WarpSim:
     # state <-> Data
 
     def _pad(self, x: np.ndarray, size: int | None = None) -> np.ndarray:
+        # not a padder of its own: it picks the world count (`_size` refuses a batch larger than the worlds)
         return pad_rows(x, size or self._size(len(x)))
 
     def _save(self, w: _Worlds, n: int, overflow: np.ndarray) -> WarpState:

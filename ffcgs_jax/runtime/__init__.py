@@ -1,5 +1,6 @@
 """How compiled work is kept and timed, for every stage: the persistent compilation cache (`jax_cache`), traced
-programs kept beside it (`traced_store`) and the compile clock (`compile_clock`)."""
+programs kept beside it (`traced_store`), the compile clock (`compile_clock`) and batches padded to one shape
+(`fixed_shapes`)."""
 
 COMPILED_MAX = 32
 """Executables each in-process cache keeps (`synthesis.grasp`, `evaluation.device_metrics`), least recently used

@@ -1,15 +1,17 @@
 """The "software" backend of `render`: a z-buffered NumPy rasteriser of world-frame triangle meshes.
 
-Scanline spans are expanded in batches and the nearest triangle per pixel is kept by one `np.maximum.at` on
-packed depth|id keys; flat Lambert shading with a headlight and a fill light, thin dark outlines, 2x supersampled.
-Needs no GL library at all. Alpha is ignored (opaque). The cameras come fitted by `render`; the lighting constants
-and the background gradient are shared with its MuJoCo backend.
+Scan conversion and the z-test are `kernels.triangles.rasterise`'s (shared with `geometry.depth_render`); the
+nearest triangle per pixel is kept through packed depth|id keys; flat Lambert shading with a headlight and a fill
+light, thin dark outlines, 2x supersampled. Needs no GL library at all. Alpha is ignored (opaque). The cameras come
+fitted by `render`; the lighting constants and the background gradient are shared with its MuJoCo backend.
 """
 
 from typing import NamedTuple
 
 import numpy as np
 from jaxtyping import UInt8
+
+from ffcgs_jax.kernels.triangles import rasterise, signed_area
 
 AMBIENT, HEADLIGHT, FILL_LIGHT = 0.25, 0.6, 0.3
 SUPERSAMPLE = 2  # `draw` renders at this many times the size and averages down (anti-aliasing)
@@ -113,7 +115,7 @@ def _id_bits(n: int) -> int:
 
 
 def _rasterise(sx: np.ndarray, sy: np.ndarray, w: np.ndarray, W: int, H: int) -> np.ndarray:
-    """Scan-convert triangles, keeping per pixel the nearest one.
+    """Scan-convert triangles (`kernels.triangles.rasterise`), keeping per pixel the nearest one.
 
     Args:
         sx, sy: (T, 3) pixel coordinates of the corners (x right, y down; pixel centres at +0.5).
@@ -124,77 +126,31 @@ def _rasterise(sx: np.ndarray, sy: np.ndarray, w: np.ndarray, W: int, H: int) ->
         (H * W,) int64: -1 for empty pixels, else (quantised inverse depth << id_bits) | triangle index.
     """
     T = len(sx)
-    sx, sy, w = sx.copy(), sy.copy(), w.copy()  # reordered in place below
     keys = np.full(H * W, -1, dtype=np.int64)
     if T == 0:
         return keys
-    # Orient counter-clockwise in (x, y-down) coordinates so "inside" is the same sign for every edge.
-    area = (sx[:, 1] - sx[:, 0]) * (sy[:, 2] - sy[:, 0]) - (sx[:, 2] - sx[:, 0]) * (sy[:, 1] - sy[:, 0])
-    flip = area < 0
-    for a in (sx, sy, w):
-        a[flip, 1], a[flip, 2] = a[flip, 2].copy(), a[flip, 1].copy()
-    area = np.abs(area)
-    y0 = np.maximum(np.ceil(sy.min(1) - 0.5), 0)
-    y1 = np.minimum(np.floor(sy.max(1) - 0.5), H - 1)
-    x0 = np.maximum(np.ceil(sx.min(1) - 0.5), 0)
-    x1 = np.minimum(np.floor(sx.max(1) - 0.5), W - 1)
-    live = np.flatnonzero((area > 1e-12) & (y1 >= y0) & (x1 >= x0))
-    if len(live) == 0:
-        return keys
-
-    # Inverse depth as a plane over the screen: w = a x + b y + c.
+    # Inverse depth as a plane over the screen: w = a x + b y + c. The signed area keeps the plane's sign whichever
+    # way a triangle winds.
+    area = signed_area(sx, sy)
     dx1, dx2 = sx[:, 1] - sx[:, 0], sx[:, 2] - sx[:, 0]
     dy1, dy2 = sy[:, 1] - sy[:, 0], sy[:, 2] - sy[:, 0]
     dw1, dw2 = w[:, 1] - w[:, 0], w[:, 2] - w[:, 0]
-    safe = np.where(area > 1e-12, area, 1.0)
+    safe = np.where(np.abs(area) > 1e-12, area, 1.0)
     pa = (dw1 * dy2 - dw2 * dy1) / safe
     pb = (dx1 * dw2 - dx2 * dw1) / safe
     pc = w[:, 0] - pa * sx[:, 0] - pb * sy[:, 0]
     w_lo, w_hi = w.min(), w.max()
     bits = _id_bits(T)
+    # One int64 per fragment, inverse depth above the triangle index, so a single maximum is the z-test and the
+    # winner's id together.
     scale = float((1 << (62 - bits)) - 1) / max(w_hi - w_lo, 1e-30)
 
-    # One entry per (triangle, pixel row) it covers.
-    rows = (y1[live] - y0[live] + 1).astype(np.int64)
-    t = np.repeat(live, rows)
-    y = y0[t] + (np.arange(len(t)) - np.repeat(np.cumsum(rows) - rows, rows))
-    yc = y + 0.5
-    # Edge k from corner k to corner k+1; a pixel centre is inside when cross(edge, p - start) >= 0 for all k,
-    # i.e. A x + B >= 0 with A = -(ey) and B = ex (yc - sy_k) + ey sx_k.
-    lo = x0[t] - 0.5
-    hi = x1[t] + 0.5
-    empty = np.zeros(len(t), dtype=bool)
-    for k in range(3):
-        ax, ay = sx[t, k], sy[t, k]
-        ex, ey = sx[t, (k + 1) % 3] - ax, sy[t, (k + 1) % 3] - ay
-        A = -ey
-        B = ex * (yc - ay) + ey * ax
-        with np.errstate(divide="ignore", invalid="ignore"):
-            bound = -B / A
-        lo = np.where(A > 0, np.maximum(lo, bound - 1e-9), lo)
-        hi = np.where(A < 0, np.minimum(hi, bound + 1e-9), hi)
-        empty |= (A == 0) & (B < 0)
-    xs = np.maximum(np.ceil(lo - 0.5), x0[t]).astype(np.int64)
-    xe = np.minimum(np.floor(hi - 0.5), x1[t]).astype(np.int64)
-    span = np.where(empty, 0, np.maximum(xe - xs + 1, 0))
-    row_w = pb[t] * yc + pc[t]
+    def fragment(tri, row, col):
+        depth = pa[tri] * (col + 0.5) + (pb[tri] * (row + 0.5) + pc[tri])
+        q = np.clip((depth - w_lo) * scale, 0, scale * (w_hi - w_lo)).astype(np.int64)
+        return (q << bits) | tri, None
 
-    # Expand rows into pixels in batches of about _MAX_FRAGMENTS.
-    ends = np.cumsum(span)
-    start = 0
-    while start < len(span):
-        stop = int(np.searchsorted(ends, (ends[start - 1] if start else 0) + _MAX_FRAGMENTS, side="right"))
-        stop = max(stop, start + 1)
-        s = span[start:stop]
-        n = int(s.sum())
-        if n:
-            r = np.repeat(np.arange(start, stop), s)
-            x = xs[r] + (np.arange(n) - np.repeat(np.cumsum(s) - s, s))
-            depth = pa[t[r]] * (x + 0.5) + row_w[r]
-            q = np.clip((depth - w_lo) * scale, 0, scale * (w_hi - w_lo)).astype(np.int64)
-            np.maximum.at(keys, y[r].astype(np.int64) * W + x, (q << bits) | t[r])
-        start = stop
-    return keys
+    return rasterise(sx, sy, W, H, fragment, keys, np.maximum, centre=0.5, batch=_MAX_FRAGMENTS)
 
 
 def _outline(owner: np.ndarray, key: np.ndarray) -> np.ndarray:
