@@ -51,7 +51,7 @@ def parts(hand, mesh, target, out, cfg, repeats: int) -> dict[str, tuple[float, 
     b, c = contacts.shape[:2]
     flat = contacts.reshape(-1, 3)
     table = dm.mesh_table(mesh)
-    contacts_fn = jax.jit(dm._mesh_contacts)
+    contacts_fn = jax.jit(dm.mesh_contacts)
     closest, normals, signed = contacts_fn(table, flat)
     closest, normals = closest.reshape(b, c, 3), normals.reshape(b, c, 3)
     U = quality.basis(mcfg.basis_size)

@@ -20,11 +20,11 @@ def main() -> None:
     args = ap.parse_args()
     frames, tz = depth_io.remove_table(depth_render.render_views(mesh_io.load_mesh("mug"), 5, noise=True))
     grid = tsdf.fuse(frames, args.res, table_z=tz)
-    seeds, _ = tsdf._seeds(jnp.asarray(grid.grid[..., 0]))
+    seeds, _ = tsdf.flood_seeds(jnp.asarray(grid.grid[..., 0]))
     print(f"{jax.devices()[0].device_kind}, res {args.res}")
     print("| offsets | compile s | median ms |\n|---|---|---|")
     for unroll in (False, True):
-        fn = jax.jit(tsdf._jump_flood, static_argnums=1)
+        fn = jax.jit(tsdf.jump_flood, static_argnums=1)
         t0 = time.perf_counter()
         compiled = fn.lower(seeds, unroll).compile()
         c = time.perf_counter() - t0

@@ -57,13 +57,13 @@ def patch(variant: str, hand) -> None:
         quality.q_distance_warm = lambda c, n, *a, **k: (1e-3 * jnp.sum(c**2), jnp.array(True),
                                                           jnp.zeros(7, jnp.int32))
     elif variant == "no-mjx":
-        d0 = jax.jit(K._mjx_kinematics)(hand, jnp.zeros_like(hand.lower))
+        d0 = jax.jit(K.mjx_kinematics)(hand, jnp.zeros_like(hand.lower))
 
         def shifted(hand, q):
             s = 0.01 * jnp.sum(jnp.sin(q))
             return d0.replace(xpos=d0.xpos + s, site_xpos=d0.site_xpos + s, xmat=d0.xmat * (1 + 0.1 * s))
 
-        K._mjx_kinematics = shifted
+        K.mjx_kinematics = shifted
 
 
 def main():
@@ -82,15 +82,14 @@ def main():
     print(f"{jax.devices()[0].device_kind}, jax {jax.__version__}; mug, 32^3, cvae sampler, n = {args.n}, "
           f"{args.iters} steps, median of {args.repeats} warm calls\n")
     print("| variant | compile (s) | median (ms) | min (ms) | kernels per step |\n|---|---|---|---|---|")
-    real_lp, real_fk = quality.q_distance_warm, K._mjx_kinematics
+    real_lp, real_fk = quality.q_distance_warm, K.mjx_kinematics
     for variant in args.variants.split(","):
-        quality.q_distance_warm, K._mjx_kinematics = real_lp, real_fk
+        quality.q_distance_warm, K.mjx_kinematics = real_lp, real_fk
         patch(variant, hand)
-        grasp._COMPILED.clear()
-        jax.clear_caches()  # traced jaxprs do not see the patched module functions
+        grasp.clear_compiled()  # JAX's caches too: traced jaxprs do not see the patched module functions
         row = time_synthesis(hand, target, GraspConfig(n=args.n, devices=1, optim=OptimConfig(iters=args.iters)),
                              args.repeats)
-        kernels = step_kernels(next(iter(grasp._COMPILED.values())).as_text(), args.iters)
+        kernels = step_kernels(grasp.compiled_executables()[0].as_text(), args.iters)
         print(f"| {variant} | {row.compile_s:.1f} | {row.median_s * 1e3:.2f} | {row.min_s * 1e3:.2f} | {kernels} |",
               flush=True)
 

@@ -25,7 +25,7 @@ def main() -> None:
     ap.add_argument("--steps", type=int, default=50)
     args = ap.parse_args()
     U = quality.basis(64)
-    axes = lp_jax._axis_columns(U)
+    axes = lp_jax.axis_columns(U)
     rng = np.random.default_rng(0)
     B = args.batch
     c = rng.normal(size=(B, 5, 3))

@@ -42,12 +42,12 @@ def stages(hand, mesh, cfg, fresh: bool) -> dict[str, float]:
     target = timed("target", lambda: make_target(grid))
     run, _ = timed("device lookup", lambda: grasp.compile_device(hand, target, cfg))
     out = timed("device run", lambda: run(jax.random.PRNGKey(0)))
-    surface = timed("triangle table", lambda: grasp._surface(mesh))
-    run_eval, _ = timed("evaluation lookup", lambda: grasp._prepare_evaluation(hand, surface, target, cfg, out))
+    surface = timed("triangle table", lambda: grasp.surface_of(mesh))
+    run_eval, _ = timed("evaluation lookup", lambda: grasp.prepare_evaluation(hand, surface, target, cfg, out))
     ev = timed("evaluation run", run_eval)
     timed("copy back", lambda: fetch.device_get((out, ev)))
     t0 = time.perf_counter()
-    grasp._finish(hand, target, cfg, out, lambda: ev, 0.0, "object").order()  # copies back again: subtract
+    grasp.finish(hand, target, cfg, out, lambda: ev, 0.0, "object").order()  # copies back again: subtract
     t["finish (host)"] = 1e3 * (time.perf_counter() - t0) - t["copy back"]
     t["sum of stages"] = 1e3 * (time.perf_counter() - start) - t["copy back"]
     return t

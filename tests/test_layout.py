@@ -5,6 +5,7 @@ import ast
 import dataclasses
 import functools
 import importlib
+import re
 import subprocess
 import sys
 import textwrap
@@ -117,34 +118,109 @@ def test_configs_live_beside_their_code():
         assert any(dataclasses.is_dataclass(v) and v.__module__ == mod.__name__ for v in vars(mod).values()), sub
 
 
-def private_uses(name: str) -> list[str]:
-    """Private names (`_x`, not dunders) of other package modules that module `name` uses: imported by name, or read
-    as an attribute of a package module it imported."""
-    tree = ast.parse(MODULES[name].read_text())
-    private = lambda n: n.startswith("_") and not n.startswith("__")  # noqa: E731
-    modules, out = {}, []
+def _private(n: str) -> bool:
+    return n.startswith("_") and not n.startswith("__")
+
+
+def _package_module(dotted: str) -> str | None:
+    """The package module a dotted string names (`ffcgs_jax.x.y`), or None."""
+    return dotted if dotted in MODULES else None
+
+
+def private_uses_in(source: str, own: str | None = None) -> list[str]:
+    """Private names (`_x`, not dunders) of package modules other than `own` that the Python `source` uses: imported
+    by name; read as an attribute of a package module it imported (`m._x`, `ffcgs_jax.m._x`, `fj.m._x`); named by a
+    string beside a module (`getattr(m, "_x")`, `monkeypatch.setattr(m, "_x", f)`); or named whole in a string
+    (`monkeypatch.setattr("ffcgs_jax.m._x", f)`, `mock.patch("ffcgs_jax.m._x")`)."""
+    tree = ast.parse(source)
+    modules, out = {}, []  # local name -> the package module it is bound to
     for node in ast.walk(tree):
         if isinstance(node, ast.Import):
             for a in node.names:
-                if a.name in MODULES and a.asname:
+                if a.asname and a.name in MODULES:
                     modules[a.asname] = a.name
+                elif not a.asname and a.name.split(".")[0] == "ffcgs_jax":
+                    modules["ffcgs_jax"] = "ffcgs_jax"
         elif isinstance(node, ast.ImportFrom) and node.level == 0 and (node.module or "").startswith("ffcgs_jax"):
             for a in node.names:
                 if f"{node.module}.{a.name}" in MODULES:
                     modules[a.asname or a.name] = f"{node.module}.{a.name}"
-                elif private(a.name):
+                elif _private(a.name):
                     out.append(f"{node.module}.{a.name}")
+        elif isinstance(node, ast.Assign) and isinstance(node.value, ast.Call) and node.value.args \
+                and ast.unparse(node.value.func) in ("importlib.import_module", "import_module") \
+                and isinstance(node.value.args[0], ast.Constant) and node.value.args[0].value in MODULES:
+            modules.update({t.id: node.value.args[0].value for t in node.targets if isinstance(t, ast.Name)})
+    for node in ast.walk(tree):  # `fj = ffcgs_jax`: a second name for an imported module
+        if isinstance(node, ast.Assign) and isinstance(node.value, ast.Name) and node.value.id in modules:
+            modules.update({t.id: modules[node.value.id] for t in node.targets if isinstance(t, ast.Name)})
+
+    def module_of(expr: ast.AST) -> str | None:
+        """The package module an expression such as `m` or `fj.synthesis.grasp` evaluates to, or None."""
+        if isinstance(expr, ast.Name):
+            return modules.get(expr.id)
+        if isinstance(expr, ast.Attribute) and (above := module_of(expr.value)):
+            return _package_module(f"{above}.{expr.attr}")
+        return None
+
+    def used(module: str | None, attr: str) -> None:
+        if module and module != own and _private(attr):
+            out.append(f"{module}.{attr}")
+
     for node in ast.walk(tree):
-        if isinstance(node, ast.Attribute) and isinstance(node.value, ast.Name) and node.value.id in modules \
-                and private(node.attr) and modules[node.value.id] != name:
-            out.append(f"{modules[node.value.id]}.{node.attr}")
+        if isinstance(node, ast.Attribute):
+            used(module_of(node.value), node.attr)
+        elif isinstance(node, ast.Call) and len(node.args) >= 2 and isinstance(node.args[1], ast.Constant) \
+                and isinstance(node.args[1].value, str):
+            used(module_of(node.args[0]), node.args[1].value)
+        elif isinstance(node, ast.Constant) and isinstance(node.value, str) \
+                and re.fullmatch(r"ffcgs_jax(\.\w+)+", node.value):
+            above, _, attr = node.value.rpartition(".")
+            used(_package_module(above), attr)
     return sorted(set(out))
+
+
+def private_uses(name: str) -> list[str]:
+    """Private names of other package modules that package module `name` uses (`private_uses_in`)."""
+    return private_uses_in(MODULES[name].read_text(), name)
+
+
+SCRIPTS = sorted(p for d in ("tests", "bench", "train", "data") for p in (REPO / d).rglob("*.py"))
 
 
 def test_private_uses_are_found():
     assert private_uses("ffcgs_jax.synthesis.grasp") == []
     tree = {m: private_uses(m) for m in MODULES}
     assert not any(tree.values()), {m: u for m, u in tree.items() if u}
+
+
+def test_private_uses_are_found_in_every_form():
+    source = textwrap.dedent("""
+        import importlib
+        import ffcgs_jax
+        import ffcgs_jax.synthesis.grasp as G
+        from ffcgs_jax.geometry import tsdf
+        from ffcgs_jax.physics.protocols import _angle, evaluate
+        fj = ffcgs_jax
+        dm = importlib.import_module("ffcgs_jax.evaluation.device_metrics")
+        G._a, tsdf._b, ffcgs_jax.hand.kinematics._c, dm._d, fj.viz.render_software._h, G.__name__, tsdf.public
+        getattr(tsdf, "_e"), monkeypatch.setattr(G, "_f", None), monkeypatch.setattr("ffcgs_jax.viz.viewer._g", None)
+        monkeypatch.setattr(G, "public", None), "ffcgs_jax._API is private but not a dotted name"
+    """)
+    found = lambda own=None: [u.removeprefix("ffcgs_jax.") for u in private_uses_in(source, own)]  # noqa: E731
+    assert found() == ["evaluation.device_metrics._d", "geometry.tsdf._b", "geometry.tsdf._e", "hand.kinematics._c",
+                       "physics.protocols._angle", "synthesis.grasp._a", "synthesis.grasp._f",
+                       "viz.render_software._h", "viz.viewer._g"]
+    assert "synthesis.grasp._a" not in found(own="ffcgs_jax.synthesis.grasp")
+    assert len(found(own="ffcgs_jax.synthesis.grasp")) == len(found()) - 2
+
+
+def test_tests_and_scripts_use_no_private_names_of_the_package():
+    """The package's private names stay its own: tests, bench scripts, train/ and data/ go through public names,
+    with no exceptions."""
+    assert len(SCRIPTS) > 50
+    uses = {str(p.relative_to(REPO)): u for p in SCRIPTS if (u := private_uses_in(p.read_text()))}
+    assert not uses, "\n".join(f"{p}: {', '.join(u)}" for p, u in uses.items())
 
 
 def test_public_api_names_resolve():

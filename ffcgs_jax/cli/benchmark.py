@@ -160,14 +160,14 @@ def cli_start(obj: str, iters: int, backend: str, n: int = 32, hand: str = "svh"
             r = subprocess.run(cmd, capture_output=True, text=True, env=env)
             wall = time.perf_counter() - t0
             if r.returncode != 0:
-                raise FfcgsError(f"`{' '.join(cmd[2:])}` failed during the CLI start benchmark: {_last_error(r.stderr)}")
+                raise FfcgsError(f"`{' '.join(cmd[2:])}` failed during the CLI start benchmark: {last_error(r.stderr)}")
             with np.load(npz) as z:
                 out[kind] = {"wall_s": wall, "compile_s": float(z["compile_s"]),
                              "synthesis_s": float(z["synthesis_s"])}
     return out
 
 
-def _last_error(stderr: str) -> str:
+def last_error(stderr: str) -> str:
     """The line that names the exception (JAX's traceback note comes after it), else the last line."""
     lines = [ln.strip() for ln in stderr.strip().splitlines() if ln.strip()]
     named = [ln for ln in lines if re.match(r"^([\w.]+(Error|Exception)|ffcgs: error):", ln)]
@@ -226,7 +226,7 @@ def markdown(report: dict) -> str:
     return "\n".join(lines) + "\n"
 
 
-_SECTION = "## `ffcgs bench`: synthesis speed per machine"
+SECTION = "## `ffcgs bench`: synthesis speed per machine"  # the heading `write_results` adds once
 
 
 def write_results(path: str | Path, report: dict) -> None:
@@ -239,8 +239,8 @@ def write_results(path: str | Path, report: dict) -> None:
     if start in text and end in text:
         text = text[:text.index(start)] + block + text[text.index(end) + len(end) + 1:]
     else:
-        if _SECTION not in text:
-            text = text.rstrip("\n") + f"\n\n{_SECTION}\n\nWritten by `ffcgs bench` (`ffcgs_jax/benchmark.py`); " \
+        if SECTION not in text:
+            text = text.rstrip("\n") + f"\n\n{SECTION}\n\nWritten by `ffcgs bench` (`ffcgs_jax/benchmark.py`); " \
                 "one block per machine, replaced when the bench runs there again.\n"
         text = text.rstrip("\n") + "\n\n" + block
     files.write_text(path, text)

@@ -64,7 +64,8 @@ class Payload(NamedTuple):
     data: bytes
 
 
-def _new_writer(f, topics):
+def new_writer(f, topics):
+    """An MCAP writer started on the open binary file f, and its channel id per topic in `topics`."""
     from mcap.writer import Writer
 
     w = Writer(f)
@@ -174,11 +175,12 @@ def init_parts(parts_dir: str | Path, config: dict, extra: dict | None = None) -
     return parts_dir
 
 
-def _part_bytes(record: Record) -> bytes:
+def part_bytes(record: Record) -> bytes:
+    """`record` as the bytes of one part file (`write_part`): an MCAP file of its /sdf and /grasps messages."""
     import io
 
     buf = io.BytesIO()
-    w, ch = _new_writer(buf, ("/sdf", "/grasps"))
+    w, ch = new_writer(buf, ("/sdf", "/grasps"))
     sdf, grasps = _messages(record)
     w.add_message(ch["/sdf"], log_time=0, publish_time=0, sequence=0, data=sdf)
     w.add_message(ch["/grasps"], log_time=0, publish_time=0, sequence=0, data=grasps)
@@ -209,7 +211,7 @@ def write_part(parts_dir: str | Path, record: Record) -> Path:
         raise FfcgsError(f"{parts_dir} is not an initialised parts directory (call init_parts first)")
     if not isinstance(record, Record):
         raise FfcgsError(f"write_part takes a Record, got {type(record).__name__}")
-    data = _part_bytes(record)
+    data = part_bytes(record)
     path = parts_dir / (record.record_id + PART_SUFFIX)
     if _is_complete(path):
         if path.read_bytes() == data or _reencoded(path) == data:
@@ -225,7 +227,7 @@ def _reencoded(part: Path) -> bytes | None:
         records = list(iter_records(part))
     except FfcgsError:
         return None
-    return _part_bytes(records[0]) if len(records) == 1 else None
+    return part_bytes(records[0]) if len(records) == 1 else None
 
 
 def done_records(parts_dir: str | Path) -> list[str]:
@@ -261,7 +263,7 @@ def merge(parts_dir: str | Path, out_path: str | Path, expected: Iterable[str] |
                              f"{unexpected[:10]}")
 
     def write(f):
-        w, ch = _new_writer(f, ("/config", "/sdf", "/grasps"))
+        w, ch = new_writer(f, ("/config", "/sdf", "/grasps"))
         w.add_message(ch["/config"], log_time=0, publish_time=0, sequence=0, data=config_text.encode())
         for i, rid in enumerate(ids):
             part = parts_dir / (rid + PART_SUFFIX)
@@ -331,7 +333,7 @@ def iter_records(path: str | Path) -> Iterator[Record]:
             i += 1
 
 
-def _shuffle_stream(items: Iterable, buffer_size: int, rng: np.random.Generator) -> Iterator:
+def shuffle_stream(items: Iterable, buffer_size: int, rng: np.random.Generator) -> Iterator:
     """Bounded-buffer shuffle: holds at most `buffer_size` items; a permutation of the input."""
     buf: list = []
     for item in items:
@@ -374,7 +376,7 @@ def batches(path: str | Path, batch_size: int, seed: int, shuffle_buffer: int = 
         rng = np.random.default_rng([int(seed), epoch])
 
         items = _grasp_items(path, rng if shuffle_buffer > 0 else None)
-        stream = _shuffle_stream(items, shuffle_buffer, rng) if shuffle_buffer > 1 else items
+        stream = shuffle_stream(items, shuffle_buffer, rng) if shuffle_buffer > 1 else items
         batch: list = []
         shape = None
         for rec, g in stream:

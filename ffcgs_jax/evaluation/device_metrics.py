@@ -226,7 +226,7 @@ def _start(points: Float[Array, "P 3"]) -> Nearest:
     return Nearest(jnp.full((p,), jnp.inf, dt), jnp.zeros((p, _WIDTH), dt), jnp.zeros((p,), dt))
 
 
-def _mesh_contacts(table: MeshTable, points: Float[Array, "P 3"]):
+def mesh_contacts(table: MeshTable, points: Float[Array, "P 3"]):
     """Closest points, normals and signed distances of `points` on the mesh, all chunks in one trace (for benchmarks
     that jit the contacts apart; `evaluate` streams the chunks through one compiled step instead)."""
     state = _start(points)

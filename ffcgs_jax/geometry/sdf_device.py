@@ -108,7 +108,7 @@ def gradient_grid(
     The triangles stream through the device in chunks of `FACE_CHUNK`, each through the same compiled steps, so a
     mesh of any size reuses the executables of the first (one set per grid resolution, dtype and backend)."""
     dtype = jnp.result_type(float)
-    steps = _steps()
+    steps = backend_steps()
     verts, faces = np.asarray(verts, np.float64), np.asarray(faces, np.int64)
     pk = _pack(verts, faces, np.asarray(origin, np.float64), float(voxel), res, dtype)
     voxel_a, orient = jnp.asarray(voxel, dtype), jnp.asarray(pk.orient, dtype)
@@ -128,7 +128,8 @@ def gradient_grid(
     return _grid(state, comp, wind, w_caps, voxel_a, orient, res=res)
 
 
-def _steps() -> Steps:
+def backend_steps() -> Steps:
+    """The loop step sizes for JAX's default backend: CPU_STEPS on the CPU, else GPU_STEPS."""
     return CPU_STEPS if jax.default_backend() == "cpu" else GPU_STEPS
 
 

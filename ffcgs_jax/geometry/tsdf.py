@@ -276,7 +276,7 @@ def _shift(x, offset, fill):
     return x
 
 
-def _seeds(V):
+def flood_seeds(V):
     """Each voxel's nearest zero crossing on the grid edges it touches ((R, R, R, 3) voxel coordinates; inf where
     no edge of the voxel crosses), and the band mask."""
     r = V.shape[0]
@@ -298,7 +298,7 @@ def _seeds(V):
     return best, jnp.isfinite(best_d)
 
 
-def _jump_flood(seeds, unroll: bool = False):
+def jump_flood(seeds, unroll: bool = False):
     """Distance (voxels) from every voxel to its nearest seed by jump flooding (Rong and Tan 2006): passes of step
     R/2, R/4, ..., 1, then `_JFA_CLEANUP`, each voxel taking the nearest of its own seed and those held by the 26
     voxels a step away. Scans over passes and offsets keep the compile under a second; `unroll` unrolls the offsets
@@ -349,8 +349,8 @@ def _dilate(mask):
 
 def _to_grid(V, h):
     """(R, R, R, 4) distance and unit gradient from the resolved field V (module docstring: the conversion)."""
-    seeds, band = _seeds(V)
-    dist = h * _jump_flood(seeds, UNROLL_JFA.get(jax.default_backend(), False))
+    seeds, band = flood_seeds(V)
+    dist = h * jump_flood(seeds, UNROLL_JFA.get(jax.default_backend(), False))
     slope = jnp.linalg.norm(jnp.stack(jnp.gradient(V, h), -1), axis=-1)
     first = jnp.abs(V) / jnp.where(slope > 0, slope, 1.0)
     clipped = _dilate(jnp.abs(V) >= jnp.abs(V).max() * (1 - 1e-9))

@@ -150,7 +150,8 @@ def channels_to_qpos(hand: Hand, q: Float[Array, " Q"]) -> Float[Array, " J"]:
     return hand.coupling @ q
 
 
-def _mjx_kinematics(hand: Hand, q: Float[Array, " Q"]) -> mjx.Data:
+def mjx_kinematics(hand: Hand, q: Float[Array, " Q"]) -> mjx.Data:
+    """MJX kinematics of the hand at joint channels q, in the model's own frame (the root at its MJCF pose)."""
     data = mjx.make_data(hand.model).replace(qpos=channels_to_qpos(hand, q))
     return mjx.kinematics(hand.model, data)
 
@@ -169,7 +170,7 @@ def forward_kinematics(hand: Hand, wrist_pose: Float[Array, "4 4"], q: Float[Arr
     Returns:
         HandFrames in the world frame; contacts are (C, 3) in the spec's contact_sites order.
     """
-    d = _mjx_kinematics(hand, q)
+    d = mjx_kinematics(hand, q)
     T = wrist_pose @ hand.root_inv
     R = T[:3, :3]
     return HandFrames(
@@ -195,7 +196,7 @@ def contact_jacobian(hand: Hand, wrist_pose: Float[Array, "4 4"], q: Float[Array
 
 def tetrahedron_points(hand: Hand, wrist_pose: Float[Array, "4 4"]) -> Float[Array, "4 3"]:
     """The 4 palm tetrahedron points in the world frame (they ride on the root body, so q does not matter)."""
-    d = _mjx_kinematics(hand, jnp.zeros_like(hand.lower))
+    d = mjx_kinematics(hand, jnp.zeros_like(hand.lower))
     return _apply(wrist_pose @ hand.root_inv, d.site_xpos[jnp.array(hand.tetrahedron_site_ids)])
 
 

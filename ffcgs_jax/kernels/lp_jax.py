@@ -64,7 +64,7 @@ def pivot_tol(dtype) -> float:
     return 1e-9 if jnp.finfo(dtype).bits == 64 else 1e-5
 
 
-def _axis_columns(U: np.ndarray) -> np.ndarray:
+def axis_columns(U: np.ndarray) -> np.ndarray:
     """Indices (2, 6) of the +e_i and -e_i columns of U."""
     out = np.zeros((2, 6), np.int32)
     for s, sign in enumerate((1.0, -1.0)):
@@ -229,7 +229,7 @@ def _solve_keyed(W, basis0, U_key, max_iter):
 @functools.lru_cache(maxsize=8)
 def _basis_from_key(U_bytes: bytes, K: int):
     U = np.frombuffer(U_bytes, np.float64).reshape(6, K)
-    return U, _axis_columns(U)
+    return U, axis_columns(U)
 
 
 def _fwd(W, basis0, U_key, max_iter):

@@ -148,7 +148,8 @@ def dataset_hand(path: str, hand: str = "") -> str:
     return hand or built
 
 
-def _weights_meta(cfg: TrainConfig, hand: str, extra: dict) -> dict:
+def weights_meta(cfg: TrainConfig, hand: str, extra: dict) -> dict:
+    """The metadata saved beside trained weights: format, version, hand, model config and training config."""
     return {"format": WEIGHTS_FORMAT, "version": __version__, "hand": hand, "model": dataclasses.asdict(cfg.model),
             "train": {"config": to_toml(cfg)} | extra}
 
@@ -268,7 +269,7 @@ def train(cfg: TrainConfig, hand: str | None = None, progress: bool = True, unti
         "train_grasps": int(len(data.grasps_of(train_recs))), "steps": total, "backend": jax.default_backend(),
     }
     checkpoint.save(out / "weights.npz", {"params": params},
-                    _weights_meta(cfg, hand_name, {k: summary[k] for k in ("train_rec", "val_rec", "steps")}))
+                    weights_meta(cfg, hand_name, {k: summary[k] for k in ("train_rec", "val_rec", "steps")}))
     files.write_text(out / "summary.json", json.dumps(summary, indent=1))
     plot_metrics(log_path, out / "metrics.png")
     return summary

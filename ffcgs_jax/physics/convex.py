@@ -47,7 +47,7 @@ def decompose(mesh: trimesh.Trimesh, cfg: PhysicsConfig = PhysicsConfig(), use_c
             return _read(path)
         except Exception:  # noqa: BLE001 - a truncated cache file is rebuilt, not fatal
             pass
-    parts, final = _compute(mesh, cfg)
+    parts, final = compute_parts(mesh, cfg)
     if use_cache and final:
         try:
             _write(path, parts)
@@ -56,7 +56,7 @@ def decompose(mesh: trimesh.Trimesh, cfg: PhysicsConfig = PhysicsConfig(), use_c
     return parts
 
 
-def _compute(mesh: trimesh.Trimesh, cfg: PhysicsConfig) -> tuple[list[tuple[np.ndarray, np.ndarray]], bool]:
+def compute_parts(mesh: trimesh.Trimesh, cfg: PhysicsConfig) -> tuple[list[tuple[np.ndarray, np.ndarray]], bool]:
     """The parts and whether they may be cached (False when the method fell back at its budget)."""
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")

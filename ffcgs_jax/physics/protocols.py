@@ -94,14 +94,15 @@ def push(batch: Batch, cfg: PhysicsConfig, direction: np.ndarray, mass: float) -
 
 
 
-def _angle(q1: np.ndarray, q2: np.ndarray) -> np.ndarray:
+def rotation_angle(q1: np.ndarray, q2: np.ndarray) -> np.ndarray:
     """Rotation angle (degrees) between unit quaternions, row by row."""
     c = np.clip(np.abs(np.sum(q1 * q2, axis=-1)), 0.0, 1.0)
     return np.degrees(2 * np.arccos(c))
 
 
 
-def _reason(bad_start: np.ndarray, lost: np.ndarray, moved: np.ndarray) -> np.ndarray:
+def failure_reason(bad_start: np.ndarray, lost: np.ndarray, moved: np.ndarray) -> np.ndarray:
+    """Per grasp, its index into REASONS: the first of a bad start, lost, moved that holds, else ok (0)."""
     return np.select([bad_start, lost, moved], [1, 2, 3], 0).astype(np.int8)
 
 
@@ -153,7 +154,7 @@ def run_protocol(sim: Simulator, batch: Batch, depth: np.ndarray, cfg: PhysicsCo
     lost = np.zeros(b, bool)
     idx = np.flatnonzero(~bad_start)
     if len(idx) == 0:
-        out = dict(success=np.zeros(b, bool), reason=_reason(bad_start, lost, lost), move=move, rot=rot)
+        out = dict(success=np.zeros(b, bool), reason=failure_reason(bad_start, lost, lost), move=move, rot=rot)
         if protocol == "six-dir":
             out.update(move_dir=np.full((b, 6), np.nan), rot_dir=np.full((b, 6), np.nan))
         return {**out, "flagged": flagged}
@@ -164,7 +165,7 @@ def run_protocol(sim: Simulator, batch: Batch, depth: np.ndarray, cfg: PhysicsCo
             p = sim.probe(state, batch.rows(rows))
             m = np.linalg.norm(p["rel"] - ref["rel"][rows], axis=1)
             gone = ~p["touch"] & (m >= cfg.max_slip)
-            move[rows[gone]], rot[rows[gone]] = m[gone], _angle(p["quat"], ref["quat"][rows])[gone]
+            move[rows[gone]], rot[rows[gone]] = m[gone], rotation_angle(p["quat"], ref["quat"][rows])[gone]
             lost[rows[gone]] = True
             return ~gone
 
@@ -173,11 +174,11 @@ def run_protocol(sim: Simulator, batch: Batch, depth: np.ndarray, cfg: PhysicsCo
         if len(rows):
             end = sim.probe(state, batch.rows(rows), np.array([0.0, 0.0, cfg.lift_height]))
             move[rows] = np.linalg.norm(end["rel"] - ref["rel"][rows], axis=1)
-            rot[rows] = _angle(end["quat"], ref["quat"][rows])
+            rot[rows] = rotation_angle(end["quat"], ref["quat"][rows])
             lost[rows], table[rows] = ~end["touch"], end["table"]
         moved = (move >= cfg.max_slip) | table
-        return dict(success=~(bad_start | lost | moved), reason=_reason(bad_start, lost, moved), move=move, rot=rot,
-                    flagged=flagged)
+        return dict(success=~(bad_start | lost | moved), reason=failure_reason(bad_start, lost, moved), move=move,
+                    rot=rot, flagged=flagged)
     move_dir, rot_dir = np.full((b, 6), np.nan), np.full((b, 6), np.nan)
     lost[idx] = ~ref["touch"][idx]
     where = np.zeros(b, np.int64)
@@ -192,7 +193,7 @@ def run_protocol(sim: Simulator, batch: Batch, depth: np.ndarray, cfg: PhysicsCo
         def pushed(state, rows, k=k):
             p = sim.probe(state, batch.rows(rows))
             move_dir[rows, k] = np.maximum(move_dir[rows, k], np.linalg.norm(p["pos"] - ref["pos"][rows], axis=1))
-            rot_dir[rows, k] = np.maximum(rot_dir[rows, k], _angle(p["quat"], ref["quat"][rows]))
+            rot_dir[rows, k] = np.maximum(rot_dir[rows, k], rotation_angle(p["quat"], ref["quat"][rows]))
             out = (move_dir[rows, k] >= cfg.max_move) | (rot_dir[rows, k] >= cfg.max_rot_deg)
             failed[rows[out]] = True
             return ~out
@@ -202,7 +203,7 @@ def run_protocol(sim: Simulator, batch: Batch, depth: np.ndarray, cfg: PhysicsCo
     tried = ~np.isnan(move_dir).all(axis=1)
     move[tried], rot[tried] = np.nanmax(move_dir[tried], axis=1), np.nanmax(rot_dir[tried], axis=1)
     moved = (np.nan_to_num(move) >= cfg.max_move) | (np.nan_to_num(rot) >= cfg.max_rot_deg)
-    return dict(success=~(bad_start | lost | moved), reason=_reason(bad_start, lost, moved), move=move, rot=rot,
+    return dict(success=~(bad_start | lost | moved), reason=failure_reason(bad_start, lost, moved), move=move, rot=rot,
                 move_dir=move_dir, rot_dir=rot_dir, flagged=flagged)
 
 
@@ -233,7 +234,7 @@ def bench_push(batch: Batch, cfg: PhysicsConfig, direction: np.ndarray, mass: fl
                    force=cfg.accel * mass * direction)
 
 
-def _pieces(seg: Segment, k: int) -> list[Segment]:
+def split_segment(seg: Segment, k: int) -> list[Segment]:
     """A segment of constant control as consecutive segments of at most k steps (a check after each)."""
     return [Segment(min(k, seg.n - i), seg.make, seg.force, seg.hold) for i in range(0, seg.n, k)]
 
@@ -270,17 +271,17 @@ def _run_bench(sim: Simulator, batch: Batch, depth: np.ndarray, cfg: PhysicsConf
             def checked(state, rows, k=k):
                 p = sim.probe(state, batch.rows(rows))
                 move_dir[rows, k] = np.maximum(move_dir[rows, k], np.linalg.norm(p["pos"] - ref["pos"][rows], axis=1))
-                rot_dir[rows, k] = np.maximum(rot_dir[rows, k], _angle(p["quat"], ref["quat"][rows]))
+                rot_dir[rows, k] = np.maximum(rot_dir[rows, k], rotation_angle(p["quat"], ref["quat"][rows]))
                 out = (move_dir[rows, k] >= cfg.max_move) | (rot_dir[rows, k] >= cfg.max_rot_deg)
                 failed[rows[out]] = True
                 return ~out
 
             _drive(sim, sim.take(squeezed, where[rows]), batch, rows,
-                   _pieces(bench_push(batch, cfg, direction, sim.scene.mass), every), flagged, checked)
+                   split_segment(bench_push(batch, cfg, direction, sim.scene.mass), every), flagged, checked)
     tried = ~np.isnan(move_dir).all(axis=1)
     move[tried], rot[tried] = np.nanmax(move_dir[tried], axis=1), np.nanmax(rot_dir[tried], axis=1)
     moved = failed & ~bad_start
-    return dict(success=~failed, reason=_reason(bad_start, moved & lost, moved), move=move, rot=rot,
+    return dict(success=~failed, reason=failure_reason(bad_start, moved & lost, moved), move=move, rot=rot,
                 move_dir=move_dir, rot_dir=rot_dir, flagged=flagged)
 
 

@@ -118,8 +118,13 @@ def clear_compiled() -> None:
     jax.clear_caches()
 
 
-def _compiled(hand: Hand, target: Target, key: jax.ShapeDtypeStruct, given, dcfg: DeviceConfig, n: int, given_q=None,
-              sampler_params=None, sampler_res=None, mesh=None):
+def compiled_executables() -> list:
+    """The device part's executables compiled so far in this process, oldest first (`clear_compiled` empties it)."""
+    return list(_COMPILED.values())
+
+
+def compiled_device_part(hand: Hand, target: Target, key: jax.ShapeDtypeStruct, given, dcfg: DeviceConfig, n: int,
+                         given_q=None, sampler_params=None, sampler_res=None, mesh=None):
     """Ahead-of-time compiled device part, cached like jit's own cache (AOT compiles bypass that cache), so that
     compile time can be reported apart and every later object reuses the executable: (compiled, call), run as
     `call(compiled, hand, target, key, given, given_q, sampler_params)`. A new executable is checked
@@ -241,20 +246,20 @@ def synthesize(hand: Hand, mesh: trimesh.Trimesh | sdf_mod.GradientSDF, cfg: Gra
         t0 = time.perf_counter()
         with clock() as run_compile:
             out = run(key)
-            surface = _surface(mesh)  # the triangle table of a new mesh (host work) while the device part runs
+            surface = surface_of(mesh)  # the triangle table of a new mesh (host work) while the device part runs
             # An evaluation compiled before is queued behind the device part, so its host-side preparation and
             # launch overlap the device's work; a new one is compiled after the device part ends (a compile
             # overlapping it would hide in synthesis_s). Either way synthesis_s ends when the device part's results
             # are ready.
-            queued, _ = _prepare_evaluation(hand, surface, target, cfg, out, compile=False)
+            queued, _ = prepare_evaluation(hand, surface, target, cfg, out, compile=False)
             ev = queued() if queued is not None else None
             out = jax.block_until_ready(out)
         synthesis_s = time.perf_counter() - t0 - run_compile[0]
         evaluate, eval_compile_s = (lambda: ev), 0.0
         with clock() as aot_eval:
             if queued is None:
-                evaluate, eval_compile_s = _prepare_evaluation(hand, surface, target, cfg, out)
-        gs = _finish(hand, target, cfg, out, evaluate, synthesis_s, object_name)
+                evaluate, eval_compile_s = prepare_evaluation(hand, surface, target, cfg, out)
+        gs = finish(hand, target, cfg, out, evaluate, synthesis_s, object_name)
     on_the_way = every[0] - aot_device[0] - aot_eval[0]
     compile_total = compile_s + eval_compile_s + on_the_way
     gs.arrays["compile_s"] = np.asarray(compile_total, np.float64)
@@ -279,12 +284,12 @@ def compile_device(hand: Hand, target: Target, cfg: GraspConfig, given: jax.Arra
                                                               NamedSharding(mesh, P()))
     key0 = jax.ShapeDtypeStruct((2,), jnp.uint32)  # `jax.random.PRNGKey`'s: no device call per lookup
     t0 = time.perf_counter()
-    compiled, call = _compiled(hand, target, key0, given, dcfg, n, given_q, params, res, mesh)
+    compiled, call = compiled_device_part(hand, target, key0, given, dcfg, n, given_q, params, res, mesh)
     return (lambda key: call(compiled, hand, target, key, given, given_q, params)), \
         time.perf_counter() - t0
 
 
-def _surface(mesh) -> device_metrics.MeshTable | sdf_mod.GradientSDF:
+def surface_of(mesh) -> device_metrics.MeshTable | sdf_mod.GradientSDF:
     """What the device evaluation measures against: the mesh's triangle table, or an SDF-only object's own grid."""
     return mesh if isinstance(mesh, sdf_mod.GradientSDF) else device_metrics.mesh_table(mesh)
 
@@ -295,14 +300,14 @@ def for_hand(cfg: GraspConfig, hand: Hand) -> GraspConfig:
     return dataclasses.replace(cfg, sampler=name, sampling=sampling)
 
 
-def _prepare_evaluation(hand, surface, target, cfg, out: DeviceOut, compile: bool = True):
-    """(`run()` of the device evaluation of `out`'s grasps on `surface` (`_surface`), seconds spent compiling it);
+def prepare_evaluation(hand, surface, target, cfg, out: DeviceOut, compile: bool = True):
+    """(`run()` of the device evaluation of `out`'s grasps on `surface` (`surface_of`), seconds spent compiling it);
     `compile` False: (None, 0.0) unless an earlier call compiled it (`device_metrics.compile_evaluate`)."""
     return device_metrics.compile_evaluate(surface, out.opt.final.contacts, out.opt.q, hand.lower, hand.upper,
                                            target.centre, target.radius, metrics_config(cfg), compile=compile)
 
 
-def _finish(hand, target, cfg, out: DeviceOut, evaluate, synthesis_s, object_name) -> GraspSet:
+def finish(hand, target, cfg, out: DeviceOut, evaluate, synthesis_s, object_name) -> GraspSet:
     """The grasps on the host, ranked fields and all; `synthesize` adds the call's compile_s, sdf_s and total_s."""
     t0 = time.perf_counter()
     with compile_clock.compiling() as packing:  # the packing's first call in a process compiles: not copy time
@@ -377,7 +382,7 @@ def check_on_mesh(hand: Hand, mesh: trimesh.Trimesh, gs: GraspSet, grid: sdf_mod
     as the synthesis)."""
     target = make_target(grid)
     dtype = target.sdf.grid.dtype
-    ev = device_metrics.evaluate(_surface(mesh), jnp.asarray(gs["contacts"], dtype), jnp.asarray(gs["q"], dtype),
+    ev = device_metrics.evaluate(surface_of(mesh), jnp.asarray(gs["contacts"], dtype), jnp.asarray(gs["q"], dtype),
                                  hand.lower, hand.upper, target.centre, target.radius, metrics_config(gs.config))
     ev = fetch.device_get(ev)
     return {f"{k}_true": np.asarray(ev[k]) for k in ("epsilon", "force_closure", "contact_dist", "n_contacts")}

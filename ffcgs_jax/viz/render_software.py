@@ -16,7 +16,7 @@ from ffcgs_jax.kernels.triangles import rasterise, signed_area
 AMBIENT, HEADLIGHT, FILL_LIGHT = 0.25, 0.6, 0.3
 SUPERSAMPLE = 2  # `draw` renders at this many times the size and averages down (anti-aliasing)
 _OUTLINE = 0.55  # brightness factor of the outline pixels
-_BG_TOP, _BG_BOTTOM = (236, 240, 246), (196, 204, 216)
+BG_TOP, BG_BOTTOM = (236, 240, 246), (196, 204, 216)
 _MAX_FRAGMENTS = 1 << 22  # pixels rasterised per NumPy batch, bounds memory on big images
 
 
@@ -165,7 +165,7 @@ def _outline(owner: np.ndarray, key: np.ndarray) -> np.ndarray:
 
 
 def background(W: int, H: int) -> UInt8[np.ndarray, "height width 3"]:
-    """The sky gradient, _BG_TOP at the top row to _BG_BOTTOM at the bottom."""
+    """The sky gradient, BG_TOP at the top row to BG_BOTTOM at the bottom."""
     t = np.linspace(0.0, 1.0, H)[:, None]
-    col = (1 - t) * np.array(_BG_TOP) + t * np.array(_BG_BOTTOM)
+    col = (1 - t) * np.array(BG_TOP) + t * np.array(BG_BOTTOM)
     return np.repeat(col[:, None, :], W, axis=1).astype(np.uint8)

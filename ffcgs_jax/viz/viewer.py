@@ -70,7 +70,7 @@ def _wxyz(R: np.ndarray) -> np.ndarray:
     return q
 
 
-def _cone_segments(p: np.ndarray, n: np.ndarray, mu: float) -> np.ndarray:
+def cone_segments(p: np.ndarray, n: np.ndarray, mu: float) -> np.ndarray:
     """(CONE_EDGES, 2, 3) generator lines of the friction cone at p about the outward normal n."""
     a = np.cross(n, [1.0, 0.0, 0.0] if abs(n[0]) < 0.9 else [0.0, 1.0, 0.0])
     a /= np.linalg.norm(a)
@@ -126,7 +126,7 @@ class GraspView:
         segs = np.stack([contacts, contacts + NORMAL_LENGTH * normals], 1)
         self.handles["normals"] = self.server.scene.add_line_segments(
             "/grasp/normals", segs, (30, 30, 220), thickness=0.0015)
-        cones = np.concatenate([_cone_segments(p, n, self.mu) for p, n in zip(contacts, normals)])
+        cones = np.concatenate([cone_segments(p, n, self.mu) for p, n in zip(contacts, normals)])
         self.handles["cones"] = self.server.scene.add_line_segments(
             "/grasp/friction_cones", cones, (250, 200, 40), thickness=0.001)
         self.handles["info"].content = _info(d, i, rank, touching)

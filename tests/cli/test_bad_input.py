@@ -58,7 +58,7 @@ def make_inputs(tmp_path: Path) -> Path:
     (tmp_path / "hand.toml").write_text("name = 'x'\n")
     (tmp_path / "a_file").write_text("I am a file, not a folder\n")
     (tmp_path / "meshes").mkdir()
-    (tmp_path / "meshes" / "box.ply").write_bytes((objects._folder() / "box.ply").read_bytes())
+    (tmp_path / "meshes" / "box.ply").write_bytes(objects.path("box").read_bytes())
     tiny = mesh_io.load_mesh("ball")
     tiny.apply_scale(0.001)
     tiny.export(tmp_path / "tiny.stl")

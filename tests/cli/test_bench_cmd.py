@@ -59,7 +59,7 @@ def test_results_block_is_replaced_per_machine_and_others_kept(tmp_path):
     assert text.count("<!-- ffcgs bench: gpu · H100 × 2 -->") == 1
     assert text.count("<!-- ffcgs bench: gpu · H200 × 2 -->") == 1
     assert "2 devices run 2.50× as fast as one" in text and "1.82×" not in text and "1.25×" in text
-    assert text.count(benchmark._SECTION) == 1
+    assert text.count(benchmark.SECTION) == 1
     assert text.index("H100 × 2 -->") < text.index("H200 × 2 -->")  # replaced in place, not moved to the end
 
 
@@ -85,9 +85,9 @@ def test_bad_options_exit_2_with_one_line(argv, message, capsys):
 def test_failed_cli_run_is_reported_by_its_exception_line():
     stderr = ("Traceback (most recent call last):\n  File x\nRuntimeError: Unable to initialize backend 'rocm'\n"
               "--------------------\nFor simplicity, JAX has removed its internal frames from the traceback.\n")
-    assert benchmark._last_error(stderr) == "RuntimeError: Unable to initialize backend 'rocm'"
-    assert benchmark._last_error("ffcgs: error: object not found: cup\n") == "ffcgs: error: object not found: cup"
-    assert benchmark._last_error("just a line\n") == "just a line"
+    assert benchmark.last_error(stderr) == "RuntimeError: Unable to initialize backend 'rocm'"
+    assert benchmark.last_error("ffcgs: error: object not found: cup\n") == "ffcgs: error: object not found: cup"
+    assert benchmark.last_error("just a line\n") == "just a line"
 
 
 @pytest.mark.slow

@@ -114,7 +114,7 @@ def test_resume_after_crash_equals_one_go(tmp_path, dataset):
         w.add(rec)
     # crash: a stray temporary file and a truncated part under its final name
     (parts / f".{recs[3].record_id}.mcap.999.tmp").write_bytes(b"\x89MCAP0\r\npartial")
-    full = dio._part_bytes(recs[4])
+    full = dio.part_bytes(recs[4])
     (parts / f"{recs[4].record_id}.mcap").write_bytes(full[: len(full) // 2])
     assert dio.done_records(parts) == sorted(r.record_id for r in recs[:3])
     with pytest.raises(FfcgsError, match="incomplete part"):
@@ -183,7 +183,7 @@ def test_shuffle_stream_memory_bounded():
 
     rng = np.random.default_rng(0)
     seen = []
-    for x in dio._shuffle_stream(source(1000), 16, rng):
+    for x in dio.shuffle_stream(source(1000), 16, rng):
         seen.append(x)
         assert pulled[0] - len(seen) <= 16
     assert sorted(seen) == list(range(1000)) and seen != list(range(1000))
@@ -280,7 +280,7 @@ def test_bad_input(tmp_path, dataset):
     rec = make_record("o", 0, 3, 0)
     bad = tmp_path / "badshape.mcap"
     with open(bad, "wb") as f:
-        w, ch = dio._new_writer(f, ("/sdf", "/grasps"))
+        w, ch = dio.new_writer(f, ("/sdf", "/grasps"))
         w.add_message(ch["/sdf"], log_time=0, publish_time=0, data=schema.encode_message(rec.meta(), rec.sdf_arrays()))
         ga = {**rec.grasp_arrays(), "q": np.zeros((2, 9))}
         w.add_message(ch["/grasps"], log_time=0, publish_time=0, data=schema.encode_message(rec.meta(), ga))

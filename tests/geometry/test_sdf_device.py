@@ -142,7 +142,7 @@ def test_gpu_step_sizes_give_the_same_grid(monkeypatch):
     """The GPU configuration (larger loop steps, one-shot winding sums), run here on the CPU, builds the same grid."""
     mesh = CASES["small_hole"]()  # open: the cap terms run too
     cpu = sdf.build_sdf(mesh, SDFConfig(res=32), cache=False).grid
-    monkeypatch.setattr(sdf_device, "_steps", lambda: sdf_device.GPU_STEPS)
+    monkeypatch.setattr(sdf_device, "backend_steps", lambda: sdf_device.GPU_STEPS)
     gpu = sdf.build_sdf(mesh, SDFConfig(res=32), cache=False).grid
     np.testing.assert_allclose(np.asarray(gpu), np.asarray(cpu), atol=1e-12)
 

@@ -175,7 +175,7 @@ def weights32(tmp_path_factory):
     cfg = TrainConfig(model=ModelConfig(width=2, features=4, head=4, mlp=8))
     params = jax.tree.map(lambda x: np.asarray(x, np.float32), cvae.init(jax.random.key(0), cfg.model))
     path = tmp_path_factory.mktemp("w") / "weights.npz"
-    checkpoint.save(path, {"params": params}, cvae_train._weights_meta(cfg, "schunk_svh_right", {}))
+    checkpoint.save(path, {"params": params}, cvae_train.weights_meta(cfg, "schunk_svh_right", {}))
     return path
 
 

@@ -129,11 +129,11 @@ def test_each_direction_from_the_squeezed_state_equals_a_fresh_reset():
     for seg in P.grasp_and_squeeze(batch, cfg):
         state = sim.run(state, batch, seg)
     move = rot = 0.0
-    for piece in P._pieces(P.bench_push(batch, cfg, P.DIRECTIONS[k], sc.mass), 50):
+    for piece in P.split_segment(P.bench_push(batch, cfg, P.DIRECTIONS[k], sc.mass), 50):
         state = sim.run(state, batch, piece)
         now = sim.probe(state, batch)
         move = max(move, float(np.linalg.norm(now["pos"][0] - ref["pos"][0])))
-        rot = max(rot, float(P._angle(now["quat"], ref["quat"])[0]))
+        rot = max(rot, float(P.rotation_angle(now["quat"], ref["quat"])[0]))
     assert branched["success"][0]
     assert branched["move_dir"][0, k] == move and branched["rot_dir"][0, k] == rot
 

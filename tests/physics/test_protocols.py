@@ -38,17 +38,17 @@ def full_run(sim, batch, depth, cfg, protocol):
         end = sim.probe(state, batch, np.array([0.0, 0.0, cfg.lift_height]))
         move = np.linalg.norm(end["rel"] - ref["rel"], axis=1)
         lost, moved = ~end["touch"], (move >= cfg.max_slip) | end["table"]
-        return dict(success=~(bad | lost | moved), reason=P._reason(bad, lost, moved), move=move)
+        return dict(success=~(bad | lost | moved), reason=P.failure_reason(bad, lost, moved), move=move)
     move_dir, rot_dir = np.zeros((len(depth), 6)), np.zeros((len(depth), 6))
     for k, direction in enumerate(P.DIRECTIONS):
         def track(s, k=k):
             p = sim.probe(s, batch)
             move_dir[:, k] = np.maximum(move_dir[:, k], np.linalg.norm(p["pos"] - ref["pos"], axis=1))
-            rot_dir[:, k] = np.maximum(rot_dir[:, k], P._angle(p["quat"], ref["quat"]))
+            rot_dir[:, k] = np.maximum(rot_dir[:, k], P.rotation_angle(p["quat"], ref["quat"]))
         sim.run(state, batch, P.push(batch, cfg, direction, sim.scene.mass), track)
     lost = ~ref["touch"]
     moved = (move_dir.max(1) >= cfg.max_move) | (rot_dir.max(1) >= cfg.max_rot_deg)
-    return dict(success=~(bad | lost | moved), reason=P._reason(bad, lost, moved), move_dir=move_dir,
+    return dict(success=~(bad | lost | moved), reason=P.failure_reason(bad, lost, moved), move_dir=move_dir,
                 rot_dir=rot_dir)
 
 

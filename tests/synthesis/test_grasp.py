@@ -218,7 +218,7 @@ def test_nested_config_is_validated_before_compiling(svh, meshes, monkeypatch):
     def no_compile(*a, **k):
         raise AssertionError("reached compilation with an invalid config")
 
-    monkeypatch.setattr(G, "_compiled", no_compile)
+    monkeypatch.setattr(G, "compiled_device_part", no_compile)
     with pytest.raises(FfcgsError, match="optim.method"):
         G.synthesize(svh, meshes["box"], dataclasses.replace(BOX, optim=OptimConfig(iters=ITERS, method="sgd")))
 

@@ -1,6 +1,6 @@
 """Grasp files: the .npz round trip and the MCAP log, read back with the `mcap` library and checked against the
 JSON Schemas stored in it and against what Foxglove needs (schema names, scene entities, transforms, timeline).
-Uses a synthetic GraspSet with the dtypes `grasp._finish` writes (no compilation here; tests/cli/test_cli_grasp.py
+Uses a synthetic GraspSet with the dtypes `grasp.finish` writes (no compilation here; tests/cli/test_cli_grasp.py
 checks the files of a real run)."""
 
 import dataclasses

@@ -45,7 +45,7 @@ def test_synthesize_refuses_before_running(monkeypatch):
     """The pipeline asks before it allocates: with (pretend) 1 kB free, one line and no run."""
     monkeypatch.setattr(memory, "free_bytes", lambda device: 1000)
     ran = []
-    monkeypatch.setattr(grasp, "_finish", lambda *a, **k: ran.append(1))
+    monkeypatch.setattr(grasp, "finish", lambda *a, **k: ran.append(1))
     hand, mesh = K.load_hand(DATA / "toy_hand" / "toy.toml"), mesh_io.load_mesh("box")
     cfg = GraspConfig(n=2, sampler="random", optim=OptimConfig(iters=1), energy=EnergyConfig(a_pen=0.0))
     with pytest.raises(FfcgsError, match="poses needs about .* GB on cpu"):

@@ -71,7 +71,7 @@ def test_box_centre_is_red_and_sky_is_background(scene, backend):
         assert np.all(centre[..., 0] > 120) and np.all(centre[..., 1:] < 60), (used, view, centre[1, 1])
     # The top-right corner of the front view looks over the floor's far edge at the background gradient.
     corner = image[1, W - 2].astype(int)
-    assert np.all(np.abs(corner - render_software._BG_TOP) <= 3), (used, corner)
+    assert np.all(np.abs(corner - render_software.BG_TOP) <= 3), (used, corner)
 
 
 def test_moving_the_box_moves_the_red_pixels():

@@ -76,7 +76,7 @@ def test_scene_nodes_and_hand_pose_follow_the_selected_grasp(view, grasps):
 
 def test_friction_cones_open_by_the_friction_angle():
     p, n = np.zeros(3), np.array([0.0, 0.0, 1.0])
-    segs = viewer._cone_segments(p, n, 0.5)
+    segs = viewer.cone_segments(p, n, 0.5)
     d = segs[:, 1] - segs[:, 0]
     np.testing.assert_allclose(np.degrees(np.arccos(d @ n / np.linalg.norm(d, axis=1))), np.degrees(np.arctan(0.5)))
 
