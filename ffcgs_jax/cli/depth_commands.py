@@ -7,7 +7,6 @@ import time
 import numpy as np
 import tyro
 
-from ffcgs_jax.errors import FfcgsError
 
 BOUNDS_HELP = "workspace box XMIN YMIN ZMIN XMAX YMAX ZMAX (metres, world frame): readings outside are background"
 

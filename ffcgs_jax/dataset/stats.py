@@ -16,7 +16,6 @@ from pathlib import Path
 import numpy as np
 
 from ffcgs_jax.dataset import mcap_io as dataset_io
-from ffcgs_jax.errors import FfcgsError
 from ffcgs_jax.files import check_file
 
 

@@ -259,8 +259,8 @@ def to_gradient_sdf_reference(values: Float[np.ndarray, "R R R"], origin: Float[
 # From the fused volume to a GradientSDF (JAX: the path `fuse` takes)
 # ----------------------------------------------------------------------------------------------------------------
 
-_JFA_CLEANUP = (2, 1)
-UNROLL_JFA = {"gpu": True}  # per backend: unroll the jump-flooding offsets (bench/depth.py --speed compares)  # extra jump-flooding passes after the halving ones (JFA+2: mends most of JFA's rare misses)
+_JFA_CLEANUP = (2, 1)  # extra jump-flooding passes after the halving ones (JFA+2: mends most of JFA's rare misses)
+UNROLL_JFA_ON = frozenset({"gpu"})  # backends where the jump-flooding offsets are unrolled (bench/depth.py --speed)
 
 
 def _shift(x, offset, fill):
@@ -350,7 +350,7 @@ def _dilate(mask):
 def _to_grid(V, h):
     """(R, R, R, 4) distance and unit gradient from the resolved field V (module docstring: the conversion)."""
     seeds, band = flood_seeds(V)
-    dist = h * jump_flood(seeds, UNROLL_JFA.get(jax.default_backend(), False))
+    dist = h * jump_flood(seeds, jax.default_backend() in UNROLL_JFA_ON)
     slope = jnp.linalg.norm(jnp.stack(jnp.gradient(V, h), -1), axis=-1)
     first = jnp.abs(V) / jnp.where(slope > 0, slope, 1.0)
     clipped = _dilate(jnp.abs(V) >= jnp.abs(V).max() * (1 - 1e-9))

@@ -119,8 +119,8 @@ def clear_compiled() -> None:
 
 
 def compiled_executables() -> list:
-    """The device part's executables compiled so far in this process, oldest first (`clear_compiled` empties it)."""
-    return list(_COMPILED.values())
+    """The device part's executables this process holds, least recently used first (`clear_compiled` empties them)."""
+    return [compiled for compiled, _ in _COMPILED.values()]
 
 
 def compiled_device_part(hand: Hand, target: Target, key: jax.ShapeDtypeStruct, given, dcfg: DeviceConfig, n: int,

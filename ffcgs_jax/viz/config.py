@@ -2,7 +2,7 @@
 
 import dataclasses
 
-from ffcgs_jax.config import check_integer, check_range
+from ffcgs_jax.config import check_integer
 from ffcgs_jax.errors import FfcgsError
 
 
