@@ -9,7 +9,7 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 
-from ffcgs_jax.kernels import lp_jax
+from ffcgs_jax.kernels import simplex
 from ffcgs_jax.types import Array, Float
 
 EPS_STARTS = 256  # spread start directions of the epsilon search
@@ -37,15 +37,16 @@ def _simplex(W, s, d, phase: int, basis, Binv, max_iter: int, unroll: bool | Non
     """Pivots of the revised simplex on min c.x, [W | diag(s)] x = d, x >= 0 from a feasible `basis` with inverse
     `Binv`: phase 1 prices the 6 artificial columns diag(s) at 1 and the wrenches at 0, phase 2 the wrenches at 1,
     and there the artificials never enter; a basic one (left at level 0 by phase 1) leaves at the first pivot whose
-    column has a non-zero entry in its row. Dantzig's rule, Bland's after `lp_jax.BLAND_AFTER` degenerate pivots, the
-    inverse refreshed every `_PIVOTS_PER_REFRESH` (`lp_jax.inverse`).
+    column has a non-zero entry in its row. The pivot rules are the package's shared ones (`kernels.simplex`: Dantzig's
+    rule, Bland's after `simplex.BLAND_AFTER` degenerate pivots, Bland's ratio tie-break), the inverse refreshed every
+    `_PIVOTS_PER_REFRESH` (`simplex.inverse`).
 
     Written with one-hot selections, elementwise products and sums instead of gathers, scatters, matrix products
     and library inverses: on a GPU XLA fuses these into a few kernels per pivot, where small batched matrix
-    products and LU factorisations are each a library call (`kernels.lp_jax` says the same of its pivots)."""
+    products and LU factorisations are each a library call (`kernels.simplex` says the same of the shared pivots)."""
     n = W.shape[1]
     dt = W.dtype
-    tol = lp_jax.pivot_tol(dt)  # the Q-distance simplex's pivot tolerance: the same LPs' scale
+    tol = simplex.pivot_tol(dt)  # the Q-distance simplex's pivot tolerance: the same LPs' scale
     cols = jnp.arange(n + 6)
     cost = jnp.where(cols < n, 0.0 if phase == 1 else 1.0, 1.0 if phase == 1 else 0.0).astype(dt)
     enter_ok = jnp.ones(n + 6, bool) if phase == 1 else cols < n
@@ -65,24 +66,18 @@ def _simplex(W, s, d, phase: int, basis, Binv, max_iter: int, unroll: bool | Non
         priced = jnp.concatenate([jnp.sum(W * y[:, None], axis=0), s * y])
         in_basis = jnp.any(basis[:, None] == cols[None, :], axis=0)
         r = jnp.where(in_basis | ~enter_ok, 0.0, cost - priced)
-        neg = r < -tol
-        enter = jnp.where(degenerate >= lp_jax.BLAND_AFTER, jnp.argmax(neg), jnp.argmin(r))
+        enter, optimal = simplex.entering(r, degenerate, tol)
         u = jnp.sum(Binv * column(enter)[None, :], axis=1)
         stuck = (basis >= n) & (phase == 2) & (jnp.abs(u) > tol)
-        ratio = jnp.where(stuck, 0.0, jnp.where(u > tol, xB / jnp.where(u > tol, u, 1.0), jnp.inf))
-        best = jnp.min(ratio)
-        leave = jnp.argmin(jnp.where(ratio <= best + tol, basis, n + 6))
-        stop = done | ~jnp.any(neg) | ~jnp.isfinite(best)
-        at = jnp.arange(6) == leave
-        u_leave = jnp.sum(jnp.where(at, u, 0.0))
-        row = jnp.sum(jnp.where(at[:, None], Binv, 0.0), axis=0) / jnp.where(jnp.abs(u_leave) > 0, u_leave, 1.0)
-        new = jnp.where(at[:, None], row[None, :], Binv - u[:, None] * row[None, :])
-        return (jnp.where(stop, basis, jnp.where(at, enter, basis)), jnp.where(stop, Binv, new),
-                it + jnp.where(stop, 0, 1), jnp.where(best <= tol, degenerate + 1, 0), stop)
+        leave, best = simplex.ratio_test(xB, u, basis, tol, forced=stuck)
+        stop = done | optimal | ~jnp.isfinite(best)
+        new_basis, new = simplex.exchange(basis, Binv, enter, leave, u)
+        return (jnp.where(stop, basis, new_basis), jnp.where(stop, Binv, new), it + jnp.where(stop, 0, 1),
+                simplex.degenerate_run(degenerate, best, tol), stop)
 
     def refresh(state):
         basis, Binv, it, degenerate, done = state
-        fresh, smallest = lp_jax.inverse(matrix(basis))
+        fresh, smallest = simplex.inverse(matrix(basis))
         return basis, jnp.where(smallest > 0, fresh, Binv), it, degenerate, done
 
     state = (basis, Binv, jnp.zeros((), jnp.int32), jnp.zeros((), jnp.int32), jnp.zeros((), bool))
@@ -91,23 +86,10 @@ def _simplex(W, s, d, phase: int, basis, Binv, max_iter: int, unroll: bool | Non
 
 
 def _pivot_loop(pivot, refresh, state, max_iter: int, unroll: bool | None = None):
-    """Trips of pivots, the inverse refreshed after each, until the state's done flag (state[4]) or `max_iter`
-    pivots (state[2]). `unroll`: the pivots of a trip unrolled (None: on a GPU only, see below)."""
+    """`simplex.pivot_loop` with this module's trips: `_PIVOTS_PER_REFRESH` pivots in a loop, or twice as many
+    unrolled (`unroll`; None: on a GPU only, where each trip's end is a device-to-host sync)."""
     unroll = jax.default_backend() != "cpu" if unroll is None else unroll
-
-    def trip(state):
-        # Each trip ends in a loop-condition check, a device-to-host sync on a GPU: there the pivots of a trip are
-        # unrolled, twice as many. On a CPU a loop keeps one copy of the pivot: every kernel of an executable is
-        # its own memory mapping there, and unrolled copies of a whole evaluation ran a long test process out of
-        # mappings (vm.max_map_count) after a few dozen executables.
-        if not unroll:
-            state = jax.lax.fori_loop(0, _PIVOTS_PER_REFRESH, lambda _, st: pivot(st), state)
-        else:
-            for _ in range(2 * _PIVOTS_PER_REFRESH):
-                state = pivot(state)
-        return refresh(state)
-
-    return jax.lax.while_loop(lambda st: ~st[4] & (st[2] < max_iter), trip, state)
+    return simplex.pivot_loop(pivot, refresh, state, max_iter, (2 if unroll else 1) * _PIVOTS_PER_REFRESH, unroll)
 
 
 def _columns(W, s, basis):
@@ -128,7 +110,7 @@ def _dual_simplex(W, s, d, basis, Binv, max_iter: int, unroll: bool | None = Non
     from or one near it, so a few pivots replace a cold two-phase solve (bench/RESULTS.md, "End-to-end speed")."""
     n = W.shape[1]
     dt = W.dtype
-    tol = lp_jax.pivot_tol(dt)
+    tol = simplex.pivot_tol(dt)
     cols = jnp.arange(n + 6)
     six = jnp.arange(6)
 
@@ -157,15 +139,12 @@ def _dual_simplex(W, s, d, basis, Binv, max_iter: int, unroll: bool | None = Non
         stop = stop | ~jnp.any(ok)  # no column can take the row: d outside the cone (no force closure)
         hot = (cols[:n] == enter).astype(dt)
         u = jnp.sum(Binv * jnp.sum(W * hot[None, :], axis=1)[None, :], axis=1)
-        u_leave = jnp.sum(jnp.where(at, u, 0.0))
-        new_row = row / jnp.where(jnp.abs(u_leave) > 0, u_leave, 1.0)
-        new = jnp.where(at[:, None], new_row[None, :], Binv - u[:, None] * new_row[None, :])
-        return (jnp.where(stop, basis, jnp.where(at, enter, basis)), jnp.where(stop, Binv, new),
-                it + jnp.where(stop, 0, 1), s, stop)
+        new_basis, new = simplex.exchange(basis, Binv, enter, leave, u)
+        return (jnp.where(stop, basis, new_basis), jnp.where(stop, Binv, new), it + jnp.where(stop, 0, 1), s, stop)
 
     def refresh(state):
         basis, Binv, it, s, done = state
-        fresh, smallest = lp_jax.inverse(_columns(W, s, basis))
+        fresh, smallest = simplex.inverse(_columns(W, s, basis))
         return basis, jnp.where(smallest > 0, fresh, Binv), it, s, done
 
     state = (basis, Binv, jnp.zeros((), jnp.int32), s, jnp.zeros((), bool))
@@ -242,7 +221,7 @@ def full_rank(W: Float[Array, "6 N"]) -> Array:
     elementwise Gauss-Jordan inverse instead of a library SVD (see `_simplex`)."""
     Wc = W - jnp.mean(W, axis=1, keepdims=True)
     G = jnp.sum(Wc[:, None, :] * Wc[None, :, :], axis=2)
-    inv, smallest = lp_jax.inverse(G)
+    inv, smallest = simplex.inverse(G)
     tr, tr_inv = jnp.trace(G), jnp.trace(inv)
     ok = (smallest > 0) & jnp.isfinite(tr_inv) & (tr_inv > 0)
     return ok & (1.0 / jnp.where(ok, tr_inv, 1.0) > rank_tol(W.dtype)**2 * tr)

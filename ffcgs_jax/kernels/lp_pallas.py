@@ -11,6 +11,12 @@ a unit block that stays in the basis (no real column has a nonzero in row 7, so 
 columns have zero cost and zero entries, so they never price out. Dynamic indexing (a column of A, a row of the
 inverse) is written as masked sums, which Triton lowers; the kernel only uses elementwise ops and reductions.
 
+The kernel mirrors `kernels.simplex` rather than calling it: the shared helpers use argmin/argmax, boolean `any`,
+gathers (`inverse`'s row swaps) and integer-limit sentinels, which this kernel spells as masked sums and
+min-over-iota reductions for Triton, and Triton's lowering of the shared forms could not be checked without a GPU
+build of JAX; test_pallas_kernel_takes_the_xla_pivots (tests/kernels/test_lp_jax.py) holds it to `lp_jax.solve`'s
+pivots and bases.
+
 `interpret=True` runs the same kernel through Pallas's interpreter on any backend: the tests use it on CPUs.
 """
 
@@ -51,7 +57,7 @@ def _all(x):
 
 
 def _inverse(M, rows):
-    """Gauss-Jordan with partial pivoting on an 8 x 8 block, and the smallest pivot's magnitude (`lp_jax.inverse`)."""
+    """Gauss-Jordan with partial pivoting on an 8 x 8 block, and the smallest pivot's magnitude (`simplex.inverse`)."""
     dt = M.dtype
     inv = jnp.where(rows[:, None] == rows[None, :], 1.0, 0.0).astype(dt)
     smallest = jnp.asarray(jnp.inf, dt)

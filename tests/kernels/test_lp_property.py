@@ -6,7 +6,7 @@ not compiles). Families: primitive wrenches of random contacts, normals and fric
 and random matrices over six decades of scale, including degenerate ones (duplicated columns, rank-deficient sets,
 all columns in one open half-space, one point repeated, a zero column: the origin on the hull).
 
-Tolerance: |E_g - HiGHS| <= 1e-9 max(1, max |W|). 1e-9 is `lp_jax.pivot_tol` in float64 and the absolute tolerance of
+Tolerance: |E_g - HiGHS| <= 1e-9 max(1, max |W|). 1e-9 is `simplex.pivot_tol` in float64 and the absolute tolerance of
 tests/kernels/test_lp_jax.py at O(1) scale; E_g is positively homogeneous in W, so beyond unit scale it grows with
 the entries. Measured errors are below 1e-12 of that scale."""
 
