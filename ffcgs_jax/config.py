@@ -111,17 +111,17 @@ def load(cls: type[T], path: str | Path) -> T:
     return from_dict(cls, read_toml(path))
 
 
-def read_toml(path: str | Path) -> dict:
-    """The tables of a TOML config file, or FfcgsError naming a missing or malformed file."""
+def read_toml(path: str | Path, what: str = "config file") -> dict:
+    """The tables of a TOML file (`what`: how messages name it), or FfcgsError naming a missing or malformed file."""
     from ffcgs_jax.files import read_text
 
-    text = read_text(path, "config file")
+    text = read_text(path, what)
     try:
         return tomllib.loads(text)
     except tomllib.TOMLDecodeError as e:
-        raise FfcgsError(f"config file {path} is not valid TOML: {e}") from None
+        raise FfcgsError(f"{what} {path} is not valid TOML: {e}") from None
     except RecursionError:  # tomllib recurses per nesting level: `a = [[[...]]]` a thousand deep
-        raise FfcgsError(f"config file {path} is not a usable config: its arrays or tables nest too deep") from None
+        raise FfcgsError(f"{what} {path} is not usable: its arrays or tables nest too deep") from None
 
 
 def split_config_arg(argv: list[str]) -> tuple[str | None, list[str]]:

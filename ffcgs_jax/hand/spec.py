@@ -26,13 +26,13 @@ is refused with one `FfcgsError` line naming the spec file and the problem. docs
 """
 
 import dataclasses
-import tomllib
 from importlib import resources
 from pathlib import Path
 
 import mujoco
 import numpy as np
 
+from ffcgs_jax.config import read_toml
 from ffcgs_jax.errors import FfcgsError
 from ffcgs_jax.files import read_text
 
@@ -80,11 +80,7 @@ def load_spec(source: str | Path = "svh") -> HandSpec:
     path = Path(source)
     if path.suffix != ".toml":
         path = builtin_spec_path(str(source))
-    text = read_text(path, "hand spec")
-    try:
-        raw = tomllib.loads(text)
-    except tomllib.TOMLDecodeError as e:
-        raise FfcgsError(f"hand spec {path} is not valid TOML: {e}") from None
+    raw = read_toml(path, "hand spec")
     where = f"hand spec {path}"
     _keys(raw, _TOP_KEYS, where, required=_TOP_KEYS)
     _keys(raw["channels"], _CHANNEL_KEYS, f"{where} [channels]", required=_CHANNEL_KEYS)

@@ -135,3 +135,10 @@ def test_the_cli_prints_the_one_line(tmp_path, capsys):
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and err.startswith("ffcgs: error: hand spec ") and "['jb2'] undriven" in err, err
     assert not (tmp_path / "hand.png").exists()
+
+
+def test_a_spec_nested_too_deep_is_one_line(tmp_path):
+    """tomllib recurses per nesting level: a hand spec of arrays a few thousand deep is refused, not a RecursionError."""
+    path = tmp_path / "deep.toml"
+    path.write_text("a = " + "[" * 5000 + "]" * 5000 + "\n")
+    refused(path, r"hand spec .*deep.toml is not usable: its arrays or tables nest too deep")
