@@ -307,3 +307,21 @@ def test_layers_hold():
     contract = layers_contract()
     assert len(contract) >= 8
     assert not layer_violations(contract), "\n".join(layer_violations(contract))
+
+
+def test_constraints_pin_every_dependency_by_version():
+    """constraints.txt (what README and CI install with) pins each dependency and test extra as name==version: no
+    local file or URL, which would not install on another machine, and nothing of pyproject's left to float."""
+    import re
+    import tomllib
+
+    pins = {}
+    for line in (REPO / "constraints.txt").read_text().splitlines():
+        if line.strip() and not line.startswith("#"):
+            m = re.fullmatch(r"([A-Za-z0-9_.-]+)==([A-Za-z0-9_.+!-]+)", line.strip())
+            assert m, f"constraints.txt: {line!r} is not name==version"
+            pins[m.group(1).lower().replace("_", "-")] = m.group(2)
+    project = tomllib.loads((REPO / "pyproject.toml").read_text())["project"]
+    wanted = project["dependencies"] + project["optional-dependencies"]["test"]
+    names = {re.match(r"[A-Za-z0-9_.-]+", d).group(0).lower().replace("_", "-") for d in wanted}
+    assert names <= set(pins), names - set(pins)
