@@ -74,18 +74,18 @@ def parser() -> Parser:
     ap.add_argument("--ycb", default=str(Q.REPO.parent / "shared" / "objects" / "ycb"), help="folder of YCB *.stl")
     ap.add_argument("--only", metavar="NAMES", help="comma list: keep only these objects of the groups")
     ap.add_argument("--every-file", action="store_true", help="--ycb holds only the test split: take every file")
-    ap.add_argument("--procedural", type=Q._int_at_least(0), default=8, help="procedural shapes (seed 1000)")
+    ap.add_argument("--procedural", type=Q.int_at_least(0), default=8, help="procedural shapes (seed 1000)")
     ap.add_argument("--views", default="1,3,5", help="comma list of camera counts")
     ap.add_argument("--noise", default="off,on", help="comma list of off, on")
     ap.add_argument("--scene", default="plane", help="comma list of plane, " + ", ".join(SCENE_NAMES))
-    ap.add_argument("--width", type=Q._int_at_least(16), default=640)
-    ap.add_argument("--height", type=Q._int_at_least(16), default=480)
-    ap.add_argument("--res", type=Q._int_at_least(16), default=32, help="voxels per axis of the fused grid")
-    ap.add_argument("--points", type=Q._int_at_least(10), default=5000, help="mesh surface points for the distances")
+    ap.add_argument("--width", type=Q.int_at_least(16), default=640)
+    ap.add_argument("--height", type=Q.int_at_least(16), default=480)
+    ap.add_argument("--res", type=Q.int_at_least(16), default=32, help="voxels per axis of the fused grid")
+    ap.add_argument("--points", type=Q.int_at_least(10), default=5000, help="mesh surface points for the distances")
     ap.add_argument("--sampler", default="cvae", choices=SAMPLERS)
     ap.add_argument("--hand", default="svh")
-    ap.add_argument("--n", type=Q._int_at_least(1), default=32, help="wrist poses sampled per object")
-    ap.add_argument("--seed", type=Q._int_at_least(0), default=0)
+    ap.add_argument("--n", type=Q.int_at_least(1), default=32, help="wrist poses sampled per object")
+    ap.add_argument("--seed", type=Q.int_at_least(0), default=0)
     ap.add_argument("--filter-mesh", default="fused", choices=("true", "fused"),
                     help="mesh that synthesize's contact and force-closure filters read for fused-planned grasps: "
                          "the fused SDF's zero level (default: as `ffcgs grasp --depth` and a robot without the "
@@ -96,13 +96,13 @@ def parser() -> Parser:
     ap.add_argument("--no-mesh-row", dest="mesh_row", action="store_false",
                     help="skip the mesh-planned row (when another run has it)")
     ap.add_argument("--physics", default="on", choices=("on", "off"), help="off: surface figures only")
-    ap.add_argument("--friction", type=Q._positive_float, default=0.6)
+    ap.add_argument("--friction", type=Q.positive_float, default=0.6)
     ap.add_argument("--backend", default="auto", choices=BACKENDS, help="physics backend")
-    ap.add_argument("--max-grasps-per-object", type=Q._int_at_least(0), default=0, metavar="K",
+    ap.add_argument("--max-grasps-per-object", type=Q.int_at_least(0), default=0, metavar="K",
                     help="physics-test at most the K best returned grasps per object (0: all)")
     ap.add_argument("--speed", action="store_true", help="time the fusion steps instead (see above)")
     ap.add_argument("--object", default="mug", help="--speed: built-in name or mesh file")
-    ap.add_argument("--repeats", type=Q._int_at_least(1), default=20, help="--speed: warm calls per step")
+    ap.add_argument("--repeats", type=Q.int_at_least(1), default=20, help="--speed: warm calls per step")
     ap.add_argument("--json", metavar="PATH", help="write the config and every raw figure here (after every job)")
     ap.add_argument("--results", metavar="PATH", help="replace or append this script's block of a Markdown file")
     ap.add_argument("--report", metavar="JSON", help="no run: print (and --results) the tables of a --json")
@@ -126,22 +126,22 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
         if args.object not in objects.names() and not Path(args.object).is_file():
             ap.error(f"--object: neither a built-in ({', '.join(objects.names())}) nor a file: {args.object}")
         return args
-    groups = Q._split(args.objects)
+    groups = Q.split_list(args.objects)
     bad = [g for g in groups if g not in Q.GROUPS]
     if bad or not groups:
         ap.error(f"--objects: unknown group(s) {', '.join(bad) or '(none given)'}; groups: {', '.join(Q.GROUPS)}")
     args.groups = list(dict.fromkeys(groups))
     if {"ycb-test", "ycb-train"} & set(groups) and not Path(args.ycb).is_dir():
         ap.error(f"--ycb: no such folder: {args.ycb}")
-    views = Q._split(args.views)
+    views = Q.split_list(args.views)
     if not views or not all(v.isdigit() and int(v) >= 1 for v in views):
         ap.error(f"--views: expected a comma list of integers >= 1, got {args.views!r}")
     args.view_list = sorted({int(v) for v in views})
-    noise = Q._split(args.noise)
+    noise = Q.split_list(args.noise)
     if not noise or not set(noise) <= {"off", "on"}:
         ap.error(f"--noise: expected a comma list of off, on, got {args.noise!r}")
     args.noise_list = [x for x in (False, True) if ("on" if x else "off") in noise]
-    scenes = Q._split(args.scene)
+    scenes = Q.split_list(args.scene)
     if not scenes or not set(scenes) <= {"plane", *SCENE_NAMES}:
         ap.error(f"--scene: expected a comma list of plane, {', '.join(SCENE_NAMES)}, got {args.scene!r}")
     args.scene_list = list(dict.fromkeys(scenes))
@@ -234,7 +234,7 @@ def run(args) -> dict:
         from ffcgs_jax.runtime import jax_cache
 
         jax_cache.enable()
-    only = set(Q._split(args.only or ""))
+    only = set(Q.split_list(args.only or ""))
     objs = [(g, name, src if not isinstance(src, str) else mesh_io.load_mesh(src))
             for g, name, src in Q.object_sources(args) if not only or name in only]  # every mesh before compiling
     if not objs:
@@ -409,7 +409,7 @@ def summarise(report: dict) -> list[dict]:
     for label in dict.fromkeys(r["condition"] for r in report["records"]):
         recs = [r for r in report["records"] if r["condition"] == label]
         ok = [r for r in recs if not r["error"]]
-        both = [Q._both(r, protocols) for r in ok]
+        both = [Q.passed_every_protocol(r, protocols) for r in ok]
         tested = sum(len(r["tested"]) for r in ok)
         surf = [r["surface"] for r in ok if r["surface"]]
         out.append({
@@ -459,14 +459,15 @@ def table(report: dict) -> str:
              "|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for s in rows:
         sf = s["surface"]
-        surf = "-" if sf is None else (f"{Q._f(sf['median_vox'], 2)} / {Q._f(sf['p95_vox'], 2)} "
-                                       f"({Q._f(sf['median_mm'], 1)} / {Q._f(sf['p95_mm'], 1)})")
+        surf = "-" if sf is None else (f"{Q.format_fixed(sf['median_vox'], 2)} / {Q.format_fixed(sf['p95_vox'], 2)} "
+                                       f"({Q.format_fixed(sf['median_mm'], 1)} / {Q.format_fixed(sf['p95_mm'], 1)})")
         vk, vn = s["valid"]
-        lines.append(f"| {s['condition']} | {s['objects']} ({s['failed']}) | {surf} | {Q._f(s['worst_p95_vox'], 2)} | "
+        lines.append(f"| {s['condition']} | {s['objects']} ({s['failed']}) | {surf} | "
+                     f"{Q.format_fixed(s['worst_p95_vox'], 2)} | "
                      f"{100 * vk / max(vn, 1):.1f} % ({vk}/{vn}) | {Q.rate(s['success'].get('lift-shake'))} | "
                      f"{Q.rate(s['success'].get('six-dir'))} | {Q.rate(s['both'])} | {_pp(s, base)} | "
-                     f"{Q.rate(s['top1'])} | {Q._f(s['fuse_s'], 3)} | {Q._f(s['wall_s'], 2)} "
-                     f"({Q._f(s['physics_s'], 1)}) |")
+                     f"{Q.rate(s['top1'])} | {Q.format_fixed(s['fuse_s'], 3)} | {Q.format_fixed(s['wall_s'], 2)} "
+                     f"({Q.format_fixed(s['physics_s'], 1)}) |")
     target = ""
     for noisy5 in (s for s in rows if s["condition"].startswith("5 views, noisy")):
         if base and noisy5["tested"] and base["tested"]:
@@ -493,7 +494,7 @@ def per_object_table(report: dict) -> str:
         if r["error"]:
             lines.append(f"| {r['object']} | {r['condition']} | {surf} | {tz} | failed: {r['error']} | - | - |")
             continue
-        both = Q._both(r, report["config"]["protocols"])
+        both = Q.passed_every_protocol(r, report["config"]["protocols"])
         f = r["filters"]
         lines.append(f"| {r['object']} | {r['condition']} | {surf} | {tz} | {r['valid']}/{r['n']} | "
                      f"{f['not all tips touching']} ({f['median |tip distance| mm']:.1f}) | "

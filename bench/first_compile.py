@@ -33,7 +33,7 @@ _LINE = re.compile(r"Finished (tracing|jaxpr to MLIR module conversion|XLA compi
 _STAGE = {"tracing": "trace", "jaxpr to MLIR module conversion": "lower", "XLA compilation": "compile"}
 
 
-class _Log(logging.Handler):
+class CompileStageLog(logging.Handler):
     def __init__(self):
         super().__init__(logging.DEBUG)
         self.rows = []
@@ -46,7 +46,7 @@ class _Log(logging.Handler):
 
 
 def first_call(obj: str) -> tuple[fj.GraspSet, float]:
-    log = _Log()
+    log = CompileStageLog()
     loggers = [logging.getLogger(n) for n in ("jax._src.dispatch", "jax._src.interpreters.pxla",
                                               "jax._src.compiler", "jax._src.pjit")]
     for lg in loggers:

@@ -74,7 +74,7 @@ class Parser(argparse.ArgumentParser):
         sys.exit(2)
 
 
-def _int_at_least(lo: int):
+def int_at_least(lo: int):
     def parse(text: str) -> int:
         try:
             v = int(text)
@@ -86,7 +86,7 @@ def _int_at_least(lo: int):
     return parse
 
 
-def _positive_float(text: str) -> float:
+def positive_float(text: str) -> float:
     try:
         v = float(text)
     except ValueError:
@@ -96,7 +96,7 @@ def _positive_float(text: str) -> float:
     return v
 
 
-def _split(text: str) -> list[str]:
+def split_list(text: str) -> list[str]:
     return [s.strip() for s in text.split(",") if s.strip()]
 
 
@@ -106,22 +106,22 @@ def parser() -> Parser:
     ap.add_argument("--objects", default="ycb-test,builtin,procedural", help=f"comma list of {', '.join(GROUPS)}")
     ap.add_argument("--ycb", default=str(REPO.parent / "shared" / "objects" / "ycb"), help="folder of YCB *.stl")
     ap.add_argument("--every-file", action="store_true", help="--ycb holds only the test split: take every file")
-    ap.add_argument("--procedural", type=_int_at_least(0), default=8, help="procedural shapes (seed 1000)")
-    ap.add_argument("--complex", type=_int_at_least(0), default=8,
+    ap.add_argument("--procedural", type=int_at_least(0), default=8, help="procedural shapes (seed 1000)")
+    ap.add_argument("--complex", type=int_at_least(0), default=8,
                     help="complex procedural shapes (seed 2000): lobes, fins, holes, cups, bowls")
     ap.add_argument("--samplers", default="cvae,geometric", help=f"comma list of {', '.join(SAMPLERS)}")
     ap.add_argument("--config", action="append", default=[], metavar="PATH",
                     help="GraspConfig TOML (e.g. configs/paper.toml) or 'default'; repeat for several (default: "
                          "the package defaults only)")
     ap.add_argument("--hand", default="svh")
-    ap.add_argument("--n", type=_int_at_least(1), default=32, help="wrist poses sampled per object")
-    ap.add_argument("--seed", type=_int_at_least(0), default=0)
-    ap.add_argument("--friction", type=_positive_float, default=0.6)
+    ap.add_argument("--n", type=int_at_least(1), default=32, help="wrist poses sampled per object")
+    ap.add_argument("--seed", type=int_at_least(0), default=0)
+    ap.add_argument("--friction", type=positive_float, default=0.6)
     ap.add_argument("--protocols", default=",".join(PROTOCOLS), help="comma list of physics protocols")
     ap.add_argument("--backend", default="auto", choices=BACKENDS, help="physics backend")
-    ap.add_argument("--max-grasps-per-object", type=_int_at_least(0), default=0, metavar="K",
+    ap.add_argument("--max-grasps-per-object", type=int_at_least(0), default=0, metavar="K",
                     help="physics-test at most the K best returned grasps per object (0: all)")
-    ap.add_argument("--contact-tol", type=_positive_float, default=0.002, help="m: a fingertip this close touches")
+    ap.add_argument("--contact-tol", type=positive_float, default=0.002, help="m: a fingertip this close touches")
     ap.add_argument("--json", metavar="PATH", help="write the config and every per-object raw figure here")
     ap.add_argument("--results", metavar="PATH", help="replace or append the quality block of this Markdown file")
     ap.add_argument("--report", metavar="JSON", help="no synthesis: print (and --results) the tables of a --json")
@@ -138,7 +138,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
         if args.results and not Path(args.results).resolve().parent.is_dir():
             ap.error(f"--results: no such folder: {Path(args.results).parent}")
         return args
-    groups = _split(args.objects)
+    groups = split_list(args.objects)
     unknown = [g for g in groups if g not in GROUPS]
     if unknown or not groups:
         ap.error(f"--objects: unknown group(s) {', '.join(unknown) or '(none given)'}; groups: {', '.join(GROUPS)}")
@@ -146,12 +146,12 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     for g in ("ycb-test", "ycb-train"):
         if g in groups and not Path(args.ycb).is_dir():
             ap.error(f"--ycb: no such folder: {args.ycb} (needed by the {g} group)")
-    samplers = _split(args.samplers)
+    samplers = split_list(args.samplers)
     bad = [s for s in samplers if s not in SAMPLERS]
     if bad or not samplers:
         ap.error(f"--samplers: unknown sampler(s) {', '.join(bad) or '(none given)'}; samplers: {', '.join(SAMPLERS)}")
     args.sampler_list = list(dict.fromkeys(samplers))
-    protocols = _split(args.protocols)
+    protocols = split_list(args.protocols)
     bad = [p for p in protocols if p not in ALL_PROTOCOLS]
     if bad or not protocols:
         ap.error(f"--protocols: unknown protocol(s) {', '.join(bad) or '(none given)'}; "
@@ -311,7 +311,7 @@ def command_line() -> str:
 # ---------------------------------------------------------------------------------------------------- reporting
 
 
-def _both(rec: dict, protocols: list[str]) -> np.ndarray:
+def passed_every_protocol(rec: dict, protocols: list[str]) -> np.ndarray:
     """Per tested grasp: passed every protocol that was run."""
     ok = np.ones(len(rec["tested"]), bool)
     for p in protocols:
@@ -326,7 +326,7 @@ def object_figures(rec: dict, protocols: list[str], contact_tol: float) -> dict:
     order = np.asarray(rec["order"], int)
     returned = order[valid[order]] if n else order
     tested = np.asarray(rec["tested"], int)
-    both = _both(rec, protocols)
+    both = passed_every_protocol(rec, protocols)
     arr = {k: np.asarray(rec[k], float) for k in ("E", "E_g", "E_c", "penetration")}
     low = np.argsort(arr["E"], kind="stable")[:TABLE2_K]
     top1 = int(order[0]) if n and valid[order[0]] else None
@@ -395,7 +395,7 @@ def rate(k_n) -> str:
     return f"{k} / {n} = {100 * k / n:.1f} % ({100 * lo:.0f}-{100 * hi:.0f} %)"
 
 
-def _f(x: float, digits: int = 3) -> str:
+def format_fixed(x: float, digits: int = 3) -> str:
     return "-" if x is None or not math.isfinite(x) else f"{x:.{digits}f}"
 
 
@@ -431,8 +431,9 @@ def table(report: dict) -> str:
         if s["all_touch"] is not None:
             fc += f"; all tips <= {tol_mm:g} mm: {rate(s['all_touch'])}"
         vk, vn = s["valid"]
-        secs = (f"{_f(s['wall_s'], 2)}{' (cold)' if s['wall_cold'] else ''} (device {_f(s['synthesis_s'], 2)}) "
-                f"+ physics {_f(s['physics_s'], 1)}; compile {_f(s['compile_s'], 0)}")
+        secs = (f"{format_fixed(s['wall_s'], 2)}{' (cold)' if s['wall_cold'] else ''} "
+                f"(device {format_fixed(s['synthesis_s'], 2)}) "
+                f"+ physics {format_fixed(s['physics_s'], 1)}; compile {format_fixed(s['compile_s'], 0)}")
         lines.append(
             f"| {s['row']} | {s['objects']} | {100 * vk / max(vn, 1):.1f} % ({vk}/{vn}) | {fc} | "
             f"{_g(s['E'])} / {_g(s['E_g'])} / {_g(s['E_c_mm'])} / {_g(s['pen_mm'])} | "

@@ -24,7 +24,7 @@ def _record(msg: str) -> logging.LogRecord:
 
 
 def test_the_three_stages_of_an_executable_are_read_apart(bench):
-    log = bench._Log()
+    log = bench.CompileStageLog()
     for msg in ("Finished tracing + transforming _device_part for pjit in 10.5 sec",
                 "Finished tracing _device_part for jit in 10.25 sec",
                 "Finished jaxpr to MLIR module conversion jit(_device_part) in 1.5 sec",

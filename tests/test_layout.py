@@ -122,70 +122,141 @@ def _private(n: str) -> bool:
     return n.startswith("_") and not n.startswith("__")
 
 
-def _package_module(dotted: str) -> str | None:
-    """The package module a dotted string names (`ffcgs_jax.x.y`), or None."""
-    return dotted if dotted in MODULES else None
+SCRIPTS = sorted(p for d in ("tests", "bench", "train", "data") for p in (REPO / d).rglob("*.py"))
 
 
-def private_uses_in(source: str, own: str | None = None) -> list[str]:
-    """Private names (`_x`, not dunders) of package modules other than `own` that the Python `source` uses: imported
-    by name; read as an attribute of a package module it imported (`m._x`, `ffcgs_jax.m._x`, `fj.m._x`); named by a
-    string beside a module (`getattr(m, "_x")`, `monkeypatch.setattr(m, "_x", f)`); or named whole in a string
-    (`monkeypatch.setattr("ffcgs_jax.m._x", f)`, `mock.patch("ffcgs_jax.m._x")`)."""
-    tree = ast.parse(source)
-    modules, out = {}, []  # local name -> the package module it is bound to
+def _script_names(path) -> set[str]:
+    """The names a script of tests/, bench/, train/ or data/ is imported by: its stem (pytest puts tests/ and each
+    test file's folder on sys.path, a bench script puts bench/ there), and its dotted path from the repository where
+    its folder is a package (`train.sampler`, `train`)."""
+    names = set() if path.stem == "__init__" else {path.stem}
+    if (path.parent / "__init__.py").is_file():
+        names.add(_module_name(path))
+    return names
+
+
+SCRIPT_FILES: dict[str, list] = {}  # name -> the scripts of that name (an ambiguous stem names all of them: one module)
+for _p in SCRIPTS:
+    for _n in _script_names(_p):
+        SCRIPT_FILES.setdefault(_n, []).append(_p)
+ALL_MODULES = set(MODULES) | set(SCRIPT_FILES)
+
+
+def _known_module(dotted: str) -> str | None:
+    """The repository module a dotted string names (`ffcgs_jax.x.y`, `quality`, `train.sampler`), or None."""
+    return dotted if dotted in ALL_MODULES else None
+
+
+_LOADING: set[str] = set()
+
+
+@functools.cache
+def module_bindings_of(name: str) -> dict[str, str]:
+    """The names script `name` binds to repository modules (`module_bindings`): what `from name import n` can bring
+    in, such as a pytest fixture that returns a bench script."""
+    if name not in SCRIPT_FILES or name in _LOADING:
+        return {}
+    _LOADING.add(name)
+    try:
+        out = {}
+        for path in SCRIPT_FILES[name]:
+            out.update(module_bindings(ast.parse(path.read_text()))[0])
+        return out
+    finally:
+        _LOADING.discard(name)
+
+
+def module_of(expr: ast.AST, modules: dict[str, str]) -> str | None:
+    """The repository module an expression such as `m`, `fj.synthesis.grasp` or `bench_script("quality")` evaluates
+    to, given the names bound to modules, or None."""
+    if isinstance(expr, ast.Name):
+        return modules.get(expr.id)
+    if isinstance(expr, ast.Attribute) and (above := module_of(expr.value, modules)):
+        return _known_module(f"{above}.{expr.attr}")
+    if isinstance(expr, ast.Call) and expr.args:
+        func, arg = ast.unparse(expr.func).rpartition(".")[2], expr.args[0]
+        if func in ("import_module", "bench_script", "spec_from_file_location") and \
+                isinstance(arg, ast.Constant) and isinstance(arg.value, str):
+            return _known_module(arg.value)
+        if func == "module_from_spec":
+            return module_of(arg, modules)
+    return None
+
+
+def module_bindings(tree: ast.AST) -> tuple[dict[str, str], list[str]]:
+    """(local name -> the repository module it is bound to, private names imported by name) of a parsed source.
+
+    A name is bound by `import m [as x]` (m a package module or a script's bare name), `from p import m`, `from s
+    import n` where script s binds n, `x = importlib.import_module("m")`, `x = bench_script("m")` (tests/paths.py),
+    `spec = spec_from_file_location("m", ...)` with `x = module_from_spec(spec)`, `x = y` for a bound y, and by a
+    function that returns or yields a bound expression (a pytest fixture: its tests' parameter of that name)."""
+    modules, imported = {}, []
     for node in ast.walk(tree):
         if isinstance(node, ast.Import):
             for a in node.names:
-                if a.asname and a.name in MODULES:
+                if a.asname and a.name in ALL_MODULES:
                     modules[a.asname] = a.name
-                elif not a.asname and a.name.split(".")[0] == "ffcgs_jax":
-                    modules["ffcgs_jax"] = "ffcgs_jax"
-        elif isinstance(node, ast.ImportFrom) and node.level == 0 and (node.module or "").startswith("ffcgs_jax"):
+                elif not a.asname and (top := a.name.split(".")[0]) in ALL_MODULES:
+                    modules[top] = top
+        elif isinstance(node, ast.ImportFrom) and node.level == 0 and node.module and \
+                (node.module in ALL_MODULES or node.module.startswith("ffcgs_jax")):
             for a in node.names:
-                if f"{node.module}.{a.name}" in MODULES:
+                if f"{node.module}.{a.name}" in ALL_MODULES:
                     modules[a.asname or a.name] = f"{node.module}.{a.name}"
                 elif _private(a.name):
-                    out.append(f"{node.module}.{a.name}")
-        elif isinstance(node, ast.Assign) and isinstance(node.value, ast.Call) and node.value.args \
-                and ast.unparse(node.value.func) in ("importlib.import_module", "import_module") \
-                and isinstance(node.value.args[0], ast.Constant) and node.value.args[0].value in MODULES:
-            modules.update({t.id: node.value.args[0].value for t in node.targets if isinstance(t, ast.Name)})
-    for node in ast.walk(tree):  # `fj = ffcgs_jax`: a second name for an imported module
-        if isinstance(node, ast.Assign) and isinstance(node.value, ast.Name) and node.value.id in modules:
-            modules.update({t.id: modules[node.value.id] for t in node.targets if isinstance(t, ast.Name)})
+                    imported.append(f"{node.module}.{a.name}")
+                elif a.name in (bound := module_bindings_of(node.module)):
+                    modules[a.asname or a.name] = bound[a.name]
 
-    def module_of(expr: ast.AST) -> str | None:
-        """The package module an expression such as `m` or `fj.synthesis.grasp` evaluates to, or None."""
-        if isinstance(expr, ast.Name):
-            return modules.get(expr.id)
-        if isinstance(expr, ast.Attribute) and (above := module_of(expr.value)):
-            return _package_module(f"{above}.{expr.attr}")
-        return None
+    while True:  # bindings through assignments and functions, to a fixed point (they may come in any order)
+        before = dict(modules)
+        for node in ast.walk(tree):
+            if isinstance(node, ast.Assign) and (m := module_of(node.value, modules)):
+                modules.update({t.id: m for t in node.targets if isinstance(t, ast.Name)})
+            elif isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)):
+                for r in ast.walk(node):
+                    if isinstance(r, (ast.Return, ast.Yield)) and r.value is not None \
+                            and (m := module_of(r.value, modules)):
+                        modules[node.name] = m
+        if modules == before:
+            return modules, imported
+
+
+def private_uses_in(source: str, own: str | set[str] | None = None) -> list[str]:
+    """Private names (`_x`, not dunders) of repository modules other than `own` that the Python `source` uses.
+
+    The modules are the package's (`ffcgs_jax.x`) and the scripts of tests/, bench/, train/ and data/, by the bare
+    names they are imported by (`test_runner`, `quality`, `train.sampler`). A private name is used when it is
+    imported by name (`from test_runner import _grasps`); read as an attribute of a module bound as
+    `module_bindings` says (`m._x`, `ffcgs_jax.m._x`, `fj.m._x`, `Q._x` after `import quality as Q`, `bench._x`
+    for a fixture returning a bench script); named by a string beside a module (`getattr(m, "_x")`,
+    `monkeypatch.setattr(m, "_x", f)`); or named whole in a string (`monkeypatch.setattr("ffcgs_jax.m._x", f)`,
+    `mock.patch("quality._x")`)."""
+    tree = ast.parse(source)
+    own = {own} if isinstance(own, str) else set(own or ())
+    modules, imported = module_bindings(tree)
+    out = [u for u in imported if u.rpartition(".")[0] not in own]
 
     def used(module: str | None, attr: str) -> None:
-        if module and module != own and _private(attr):
+        if module and module not in own and _private(attr):
             out.append(f"{module}.{attr}")
 
     for node in ast.walk(tree):
         if isinstance(node, ast.Attribute):
-            used(module_of(node.value), node.attr)
+            used(module_of(node.value, modules), node.attr)
         elif isinstance(node, ast.Call) and len(node.args) >= 2 and isinstance(node.args[1], ast.Constant) \
                 and isinstance(node.args[1].value, str):
-            used(module_of(node.args[0]), node.args[1].value)
+            used(module_of(node.args[0], modules), node.args[1].value)
         elif isinstance(node, ast.Constant) and isinstance(node.value, str) \
-                and re.fullmatch(r"ffcgs_jax(\.\w+)+", node.value):
+                and re.fullmatch(r"\w+(\.\w+)+", node.value):
             above, _, attr = node.value.rpartition(".")
-            used(_package_module(above), attr)
+            used(_known_module(above), attr)
     return sorted(set(out))
 
 
 def private_uses(name: str) -> list[str]:
-    """Private names of other package modules that package module `name` uses (`private_uses_in`)."""
+    """Private names of other repository modules that package module `name` uses (`private_uses_in`)."""
     return private_uses_in(MODULES[name].read_text(), name)
-
-
-SCRIPTS = sorted(p for d in ("tests", "bench", "train", "data") for p in (REPO / d).rglob("*.py"))
 
 
 def test_private_uses_are_found():
@@ -215,11 +286,47 @@ def test_private_uses_are_found_in_every_form():
     assert len(found(own="ffcgs_jax.synthesis.grasp")) == len(found()) - 2
 
 
-def test_tests_and_scripts_use_no_private_names_of_the_package():
-    """The package's private names stay its own: tests, bench scripts, train/ and data/ go through public names,
-    with no exceptions."""
+def test_private_names_of_scripts_are_found_in_every_form():
+    """Scripts by bare name (a test helper, a sibling bench script), as train/'s package, loaded by importlib or
+    by tests/paths.py's `bench_script`, and through a fixture that returns one, here or imported from a test file."""
+    source = textwrap.dedent("""
+        import importlib.util
+        import quality as Q
+        import train.sampler
+        from paths import bench_script
+        from test_runner import BALL, _a
+        from test_quality_script import quality as imported_fixture
+        from train import sampler
+        Q._b, train.sampler._c, sampler._d, Q.public, Q.__doc__, paths_like._not_a_module
+
+        @pytest.fixture
+        def depth():
+            return bench_script("depth")
+
+        def first():
+            spec = importlib.util.spec_from_file_location("first_compile", BENCH)
+            mod = importlib.util.module_from_spec(spec)
+            return mod
+
+        def test_it(depth, first, imported_fixture):
+            depth._e, first._f, imported_fixture._g, getattr(Q, "_h"), monkeypatch.setattr("eval_grasp._i", None)
+            importlib.import_module("eval_physics")._j
+    """)
+    # (module, name) pairs: "module._name" written out here would itself be a use of that name
+    others = [("depth", "_e"), ("eval_grasp", "_i"), ("eval_physics", "_j"), ("first_compile", "_f"),
+              ("train.sampler", "_c"), ("train.sampler", "_d")]
+    own = [("quality", "_b"), ("quality", "_g"), ("quality", "_h"), ("test_runner", "_a")]
+    assert private_uses_in(source) == sorted(f"{m}.{n}" for m, n in others + own)
+    assert private_uses_in(source, {"quality", "test_runner"}) == sorted(f"{m}.{n}" for m, n in others)
+    assert _script_names(REPO / "train" / "sampler.py") == {"sampler", "train.sampler"}
+    assert _script_names(REPO / "tests" / "physics" / "test_runner.py") == {"test_runner"}
+
+
+def test_no_module_uses_private_names_of_another():
+    """A module's private names stay its own: tests, bench scripts, train/ and data/ go through public names of the
+    package and of each other (a test helper of tests/, a sibling bench script), with no exceptions."""
     assert len(SCRIPTS) > 50
-    uses = {str(p.relative_to(REPO)): u for p in SCRIPTS if (u := private_uses_in(p.read_text()))}
+    uses = {str(p.relative_to(REPO)): u for p in SCRIPTS if (u := private_uses_in(p.read_text(), _script_names(p)))}
     assert not uses, "\n".join(f"{p}: {', '.join(u)}" for p, u in uses.items())
 
 

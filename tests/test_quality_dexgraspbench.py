@@ -2,11 +2,11 @@
 
 import pytest
 
-from test_quality_script import _report, quality  # noqa: F401 - quality: the script, as a fixture
+from test_quality_script import fabricated_report, quality  # noqa: F401 - quality: the script, as a fixture
 
 
 def test_dexgraspbench_gets_its_own_column(quality):  # noqa: F811
-    report = _report()
+    report = fabricated_report()
     report["config"]["protocols"] = ["six-dir", "dexgraspbench"]
     report["records"][0]["physics"]["dexgraspbench_success"] = [False, True]
     (s,) = quality.summarise(report)

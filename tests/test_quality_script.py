@@ -26,7 +26,7 @@ def _record(obj, valid, E, order, tested, physics, force_closure, contact_dist=N
             "physics_s": 1.0 if tested else 0.0}
 
 
-def _report(contact_dist=None):
+def fabricated_report(contact_dist=None):
     # object a: valid 0, 2, 3; order by E puts 2 (E 0.3) first; its two best are tested, the first passes both
     a = _record("a", [True, False, True, True], [0.5, 0.1, 0.3, 0.9], [2, 0, 3, 1], [2, 0],
                 {"lift_shake_success": [True, True], "six_dir_success": [True, False]},
@@ -42,7 +42,7 @@ def _report(contact_dist=None):
 
 
 def test_figures_of_a_fabricated_report(quality):
-    (s,) = quality.summarise(_report())
+    (s,) = quality.summarise(fabricated_report())
     assert s["valid"] == (3, 8)
     assert s["fc"] == (1, 3)  # returned grasps of a are 2, 0, 3: only 0 is in force closure
     assert s["all_touch"] is None  # no contact_dist: the figure is absent, not zero
@@ -52,14 +52,14 @@ def test_figures_of_a_fabricated_report(quality):
     assert s["both"] == (1, 2) and s["top1"] == (1, 2) and s["top1_none"] == 1
     assert s["yield"] == (1, 2)  # n / 4 = 1 returned grasp: a has 3, b none
     assert s["wall_s"] == pytest.approx(2.0)  # the compiling first call is left out
-    table = quality.table(_report())
+    table = quality.table(fabricated_report())
     row = next(ln for ln in table.splitlines() if ln.startswith("| cvae |"))
     cells = [c.strip() for c in row.strip("|").split("|")]
     assert cells[2] == "37.5 % (3/8)"
     assert cells[3] == "1 / 3 = 33.3 % (6-79 %)"
     assert cells[8] == "1 / 2 = 50.0 % (9-91 %)"
     assert "(cvae: 1)" in table  # the object without a valid grasp is named in the footnote
-    per = quality.per_object_table(_report())
+    per = quality.per_object_table(fabricated_report())
     assert "| a | cvae | 3/4 | 2 of 3 | 1/2 | yes |" in per
     assert "| b | cvae | 0/4 | 0 of 0 | 0/0 | no valid grasp |" in per
 
@@ -67,7 +67,7 @@ def test_figures_of_a_fabricated_report(quality):
 def test_the_validated_first_grasp_is_the_first_that_passes_both(quality):
     """Object c: the analytic first (grasp 1, lowest E) fails six-dir, grasp 3 passes both and dexgraspbench: the
     validated ranking offers 3. Object a's first passes both already; b has no valid grasp: a failure either way."""
-    rep = _report()
+    rep = fabricated_report()
     rep["config"]["protocols"] = ["lift-shake", "six-dir", "dexgraspbench"]
     rep["config"]["max_grasps_per_object"] = 0
     a, b = rep["records"]
@@ -89,7 +89,7 @@ def test_the_validated_first_grasp_is_the_first_that_passes_both(quality):
 
 def test_all_tips_touching_uses_the_tolerance(quality):
     dist = [[0.001, -0.0015, 0.0, 0.0, 0.0], [0.01] * 5, [0.0] * 5, [0.0, 0.0, 0.0, 0.0, -0.003]]
-    (s,) = quality.summarise(_report(dist))
+    (s,) = quality.summarise(fabricated_report(dist))
     assert s["all_touch"] == (2, 3)  # returned 2 and 0 touch within 2 mm; 3 has a tip 3 mm inside
 
 

@@ -11,7 +11,7 @@ from ffcgs_jax.physics import backend_warp
 from ffcgs_jax.physics import runner as physics
 from ffcgs_jax.physics.config import PhysicsConfig
 
-from test_runner import BALL, SPEC, _grasps, enveloping_ball_grasp
+from test_runner import BALL, SPEC, ball_grasps, enveloping_ball_grasp
 
 pytestmark = pytest.mark.skipif(backend_warp.unavailable() is not None, reason="warp-lang / mujoco-warp missing")
 
@@ -20,7 +20,7 @@ FAST = PhysicsConfig(friction=1.0, close_time=0.2, settle_time=0.1, lift_height=
 
 
 def _four():
-    Ts, qs = _grasps(3)
+    Ts, qs = ball_grasps(3)
     far, q = enveloping_ball_grasp(shift=0.05)  # touches nothing: fails as "lost" on both
     return np.concatenate([Ts, far[None]]), np.concatenate([qs, q[None]])
 

@@ -11,7 +11,7 @@ from ffcgs_jax.physics import backend_cpu
 from ffcgs_jax.physics import protocols as P
 from ffcgs_jax.physics import runner as physics
 
-from test_runner import BALL, FAST, SPEC, _grasps, enveloping_ball_grasp
+from test_runner import BALL, FAST, SPEC, ball_grasps, enveloping_ball_grasp
 
 # pushes strong enough that the weaker grasps slip out within the short pushes
 # (one slips in the first push, +x, and is not pushed further; one in the last, -z)
@@ -19,7 +19,7 @@ CFG = dataclasses.replace(FAST, friction=0.6, accel=25.0, push_time=0.3)
 
 
 def mixed():
-    Ts, qs = _grasps(4)
+    Ts, qs = ball_grasps(4)
     far, q = enveloping_ball_grasp(shift=0.05)  # touches nothing: dropped at once
     deep, _ = enveloping_ball_grasp(shift=-0.03)  # starts 3 cm inside: penetration
     return np.concatenate([Ts, far[None], deep[None]]), np.concatenate([qs, q[None], q[None]])

@@ -73,7 +73,7 @@ def test_hand_5cm_away_fails_and_deep_penetration_fails():
     assert r["initial_penetration"][0] == 0 and r["initial_penetration"][1] > 0.01
 
 
-def _grasps(k: int = 3):
+def ball_grasps(k: int = 3):
     T, q = enveloping_ball_grasp()
     shifts = np.linspace(-0.004, 0.008, k)
     Ts = np.stack([enveloping_ball_grasp(s)[0] for s in shifts])
@@ -82,7 +82,7 @@ def _grasps(k: int = 3):
 
 
 def test_deterministic_and_batch_equals_loop():
-    Ts, qs = _grasps()
+    Ts, qs = ball_grasps()
     a = evaluate(Ts, qs, FAST)
     b = evaluate(Ts, qs, FAST)
     one = [evaluate(Ts[i], qs[i], FAST) for i in range(len(qs))]
@@ -165,7 +165,7 @@ def test_bad_inputs_are_refused():
 
 @pytest.fixture
 def ball_npz(tmp_path):
-    Ts, qs = _grasps(2)
+    Ts, qs = ball_grasps(2)
     path = tmp_path / "g.npz"
     np.savez(path, object_name=np.array("ball"), wrist_pose=Ts, q=qs, valid=np.array([True, False]))
     return path
@@ -300,7 +300,7 @@ def test_evaluate_physics_is_evaluate_on_a_grasp_set():
     import ffcgs_jax as fj
     from ffcgs_jax.synthesis.grasp import GraspSet
 
-    Ts, qs = _grasps(3)
+    Ts, qs = ball_grasps(3)
     squeeze = np.tile(np.linspace(0.2, 1.0, 9), (3, 1)) / 2
     gs = GraspSet({"wrist_pose": Ts, "q": qs, "squeeze_dir": squeeze}, {}, fj.GraspConfig(), "ball")
     old = physics.evaluate(SPEC, BALL, Ts[[2, 0]], qs[[2, 0]], FAST, ("six-dir",), "cpu",
@@ -336,7 +336,7 @@ def test_evaluate_physics_is_evaluate_on_a_grasp_set():
 def test_evaluate_physics_bad_input_one_line(call, message):
     import ffcgs_jax as fj
 
-    Ts, qs = _grasps(2)
+    Ts, qs = ball_grasps(2)
     args = {"hand": SPEC, "mesh": BALL, "grasps": {"wrist_pose": Ts, "q": qs}, "cfg": FAST} | call(Ts, qs)
     with pytest.raises(fj.FfcgsError, match=message) as e:
         fj.evaluate_physics(**args)
