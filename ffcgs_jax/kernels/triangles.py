@@ -11,6 +11,8 @@ from typing import NamedTuple
 import jax.numpy as jnp
 import numpy as np
 
+from ffcgs_jax.types import Array
+
 
 def orientation(tri: np.ndarray) -> float:
     """+1 if the faces wind outward (positive signed volume), -1 if the mesh is inside out."""
@@ -30,34 +32,62 @@ def tri_table(tri: np.ndarray, dtype=np.float32, multiple: int = 1) -> np.ndarra
     return np.concatenate([a, ab, ac, dots], axis=1).astype(dtype)
 
 
+class _Regions(NamedTuple):
+    """Ericson's Voronoi-region tests of a point against a triangle, from d1 = ab.ap, d2 = ac.ap and the edge dots:
+    shared by the one-point (`closest_offset`) and the structure-of-arrays (`dist2`) forms, which differ only in
+    how they divide."""
+
+    d3: Array
+    d6: Array
+    va: Array
+    vb: Array
+    vc: Array
+    e43: Array
+    e56: Array
+    at_a: Array
+    at_b: Array
+    on_ab: Array
+    at_c: Array
+    on_ac: Array
+    on_bc: Array
+
+    @classmethod
+    def of(cls, d1, d2, d00, d01, d11) -> "_Regions":
+        d3, d4, d5, d6 = d1 - d00, d2 - d01, d1 - d01, d2 - d11
+        vc, vb, va = d1 * d4 - d3 * d2, d5 * d2 - d1 * d6, d3 * d6 - d5 * d4
+        e43, e56 = d4 - d3, d5 - d6
+        return cls(d3, d6, va, vb, vc, e43, e56,
+                   at_a=(d1 <= 0) & (d2 <= 0), at_b=(d3 >= 0) & (d4 <= d3), on_ab=(vc <= 0) & (d1 >= 0) & (d3 <= 0),
+                   at_c=(d6 >= 0) & (d5 <= d6), on_ac=(vb <= 0) & (d2 >= 0) & (d6 <= 0),
+                   on_bc=(va <= 0) & (e43 >= 0) & (e56 >= 0))
+
+    def weights(self, w_bc, v_in, w_in, v_ab, w_ac):
+        """Barycentric weights (v on ab, w on ac) of the closest point, region by region, from each region's own:
+        on edge bc, inside, on edge ab (v), on edge ac (w)."""
+        v = jnp.where(self.on_bc, 1 - w_bc, v_in)
+        v = jnp.where(self.at_a | self.at_c | self.on_ac, 0.0,
+                      jnp.where(self.at_b, 1.0, jnp.where(self.on_ab, v_ab, v)))
+        w = jnp.where(self.on_bc, w_bc, w_in)
+        w = jnp.where(self.at_a | self.at_b | self.on_ab, 0.0,
+                      jnp.where(self.at_c, 1.0, jnp.where(self.on_ac, w_ac, w)))
+        return v, w
+
+
 def closest_offset(p, row):
     """(closest point - p) on one triangle `row` (12,) for one point `p` (3,); Ericson's Voronoi-region test."""
     a, ab, ac = row[0:3], row[3:6], row[6:9]
     d00, d01, d11 = row[9], row[10], row[11]
     ap = p - a
     d1, d2 = ab @ ap, ac @ ap
-    d3, d4, d5, d6 = d1 - d00, d2 - d01, d1 - d01, d2 - d11
-    vc, vb, va = d1 * d4 - d3 * d2, d5 * d2 - d1 * d6, d3 * d6 - d5 * d4
+    r = _Regions.of(d1, d2, d00, d01, d11)
 
     def div(n, d):
         ok = d != 0
         return jnp.where(ok, n / jnp.where(ok, d, 1.0), 0.0)
 
-    e43, e56 = d4 - d3, d5 - d6
-    at_a = (d1 <= 0) & (d2 <= 0)
-    at_b = (d3 >= 0) & (d4 <= d3)
-    on_ab = (vc <= 0) & (d1 >= 0) & (d3 <= 0)
-    at_c = (d6 >= 0) & (d5 <= d6)
-    on_ac = (vb <= 0) & (d2 >= 0) & (d6 <= 0)
-    on_bc = (va <= 0) & (e43 >= 0) & (e56 >= 0)
-    w_bc = div(e43, e43 + e56)
-    den = va + vb + vc
-    v_in, w_in = div(vb, den), div(vc, den)
-    # Barycentric weights (v on ab, w on ac) of the closest point, region by region.
-    v = jnp.where(on_bc, 1 - w_bc, v_in)
-    v = jnp.where(at_a | at_c | on_ac, 0.0, jnp.where(at_b, 1.0, jnp.where(on_ab, div(d1, d1 - d3), v)))
-    w = jnp.where(on_bc, w_bc, w_in)
-    w = jnp.where(at_a | at_b | on_ab, 0.0, jnp.where(at_c, 1.0, jnp.where(on_ac, div(d2, d2 - d6), w)))
+    den = r.va + r.vb + r.vc
+    v, w = r.weights(div(r.e43, r.e43 + r.e56), div(r.vb, den), div(r.vc, den), div(d1, d1 - r.d3),
+                     div(d2, d2 - r.d6))
     return v * ab + w * ac - ap
 
 
@@ -91,22 +121,10 @@ def dist2(px, py, pz, c):
     apx, apy, apz = px - ax, py - ay, pz - az
     d1 = bx * apx + by * apy + bz * apz
     d2 = cx * apx + cy * apy + cz * apz
-    d3, d4, d5, d6 = d1 - d00, d2 - d01, d1 - d01, d2 - d11
-    vc, vb, va = d1 * d4 - d3 * d2, d5 * d2 - d1 * d6, d3 * d6 - d5 * d4
-    e43, e56 = d4 - d3, d5 - d6
-    at_a = (d1 <= 0) & (d2 <= 0)
-    at_b = (d3 >= 0) & (d4 <= d3)
-    on_ab = (vc <= 0) & (d1 >= 0) & (d3 <= 0)
-    at_c = (d6 >= 0) & (d5 <= d6)
-    on_ac = (vb <= 0) & (d2 >= 0) & (d6 <= 0)
-    on_bc = (va <= 0) & (e43 >= 0) & (e56 >= 0)
-    den = va + vb + vc
+    r = _Regions.of(d1, d2, d00, d01, d11)
+    den = r.va + r.vb + r.vc
     inv_den = jnp.where(den != 0, 1.0 / jnp.where(den != 0, den, 1.0), 0.0)
-    w_bc = e43 * ibc
-    v = jnp.where(on_bc, 1 - w_bc, vb * inv_den)
-    v = jnp.where(at_a | at_c | on_ac, 0.0, jnp.where(at_b, 1.0, jnp.where(on_ab, d1 * i00, v)))
-    w = jnp.where(on_bc, w_bc, vc * inv_den)
-    w = jnp.where(at_a | at_b | on_ab, 0.0, jnp.where(at_c, 1.0, jnp.where(on_ac, d2 * i11, w)))
+    v, w = r.weights(r.e43 * ibc, r.vb * inv_den, r.vc * inv_den, d1 * i00, d2 * i11)
     rx, ry, rz = v * bx + w * cx - apx, v * by + w * cy - apy, v * bz + w * cz - apz
     return rx * rx + ry * ry + rz * rz
 

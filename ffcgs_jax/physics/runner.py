@@ -46,7 +46,7 @@ import numpy as np
 import trimesh
 
 from ffcgs_jax.errors import FfcgsError
-from ffcgs_jax.hand.spec import HandSpec
+from ffcgs_jax.hand.spec import HandSpec, load_spec
 from ffcgs_jax.physics import convex
 from ffcgs_jax.physics import dexgraspbench as dgb
 from ffcgs_jax.physics import scene as physics_scene
@@ -347,8 +347,6 @@ def _hand_spec(hand) -> HandSpec:
     if isinstance(getattr(hand, "spec", None), HandSpec):
         return hand.spec
     if isinstance(hand, (str, os.PathLike)):
-        from ffcgs_jax.hand.spec import load_spec
-
         return load_spec(hand)
     raise FfcgsError(f"hand must be a Hand (fj.load_hand), a hand name or a spec path, got {type(hand).__name__}")
 
