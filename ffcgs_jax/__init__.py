@@ -43,6 +43,7 @@ _API = {
     "PhysicsConfig": ("ffcgs_jax.physics.config", "PhysicsConfig"),
     "PROTOCOLS": ("ffcgs_jax.physics.config", "PROTOCOLS"),
     "build_dataset": ("ffcgs_jax.dataset.build", "build"),
+    "merge_dataset": ("ffcgs_jax.dataset.build", "merge"),
     "DatasetConfig": ("ffcgs_jax.dataset.config", "DatasetConfig"),
     "train_sampler": ("ffcgs_jax.learning.train", "train"),
     "TrainConfig": ("ffcgs_jax.learning.config", "TrainConfig"),
@@ -58,6 +59,7 @@ __all__ = ["__version__", *_API]
 
 if TYPE_CHECKING:  # what the lazy names are, for type checkers and editors
     from ffcgs_jax.dataset.build import build as build_dataset  # noqa: F401
+    from ffcgs_jax.dataset.build import merge as merge_dataset  # noqa: F401
     from ffcgs_jax.dataset.config import DatasetConfig  # noqa: F401
     from ffcgs_jax.errors import FfcgsError  # noqa: F401
     from ffcgs_jax.geometry.config import SDFConfig  # noqa: F401

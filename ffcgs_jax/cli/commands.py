@@ -16,8 +16,8 @@ import numpy as np
 import tyro
 
 from ffcgs_jax import files
-from ffcgs_jax.cli.dataset_commands import (DatasetExportCmd, DatasetInfoCmd, run_dataset_build, run_dataset_export,
-                                             run_dataset_info)
+from ffcgs_jax.cli.dataset_commands import (DatasetExportCmd, DatasetInfoCmd, DatasetMergeCmd, run_dataset_build,
+                                             run_dataset_export, run_dataset_info, run_dataset_merge)
 from ffcgs_jax.cli.depth_commands import FuseCmd, RenderDepthCmd, run_fuse, run_render_depth
 from ffcgs_jax.cli.grasp_object import not_the_recorded_object, recorded_object
 from ffcgs_jax.cli.hand_command import HandCmd, run_hand
@@ -523,6 +523,7 @@ PLANS: dict[str, Callable[..., Plan]] = {
     "dataset export": lambda c: Plan((Input("dataset", c.dataset),),
                                      (Output("--out", c.out, "npz" if c.out.lower().endswith(".npz") else "folder"),),
                                      c.overwrite),
+    "dataset merge": lambda c: Plan((), (Output("out", c.out, "mcap"),)),
 }
 
 COMMANDS: dict[str, tuple[type, Callable]] = {
@@ -538,4 +539,5 @@ COMMANDS: dict[str, tuple[type, Callable]] = {
     "dataset build": (DatasetConfig, run_dataset_build),
     "dataset info": (DatasetInfoCmd, run_dataset_info),
     "dataset export": (DatasetExportCmd, run_dataset_export),
+    "dataset merge": (DatasetMergeCmd, run_dataset_merge),
 }

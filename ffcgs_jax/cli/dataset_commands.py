@@ -1,5 +1,5 @@
 """The dataset subcommands: `ffcgs dataset build` (its options are `dataset.config.DatasetConfig`),
-`ffcgs dataset info` and `ffcgs dataset export`."""
+`ffcgs dataset info`, `ffcgs dataset export` and `ffcgs dataset merge`."""
 
 import dataclasses
 import json
@@ -53,11 +53,35 @@ class DatasetExportCmd:
     overwrite: bool = False
 
 
+@dataclasses.dataclass(frozen=True)
+class DatasetMergeCmd:
+    """Write the dataset file from the parts that builds on one or many machines wrote into OUT.parts/ (a shared
+    folder): every object's records must be there.
+
+    Attributes:
+        out: the .mcap file the builds were given as --out.
+    """
+
+    out: tyro.conf.Positional[str] = tyro.MISSING
+
+    def check(self) -> None:
+        if not self.out.endswith(".mcap"):
+            raise FfcgsError(f"the dataset file must be an .mcap file, got {self.out!r}")
+
+
+def run_dataset_merge(cmd: DatasetMergeCmd) -> None:
+    from ffcgs_jax.dataset import build as dataset_build
+
+    r = dataset_build.merge(cmd.out)
+    files.announce(f"wrote {r['out']}: {r['records']} records of {r['objects']} objects")
+
+
 def run_dataset_build(cfg: DatasetConfig) -> None:
     from ffcgs_jax.dataset import build as dataset_build
 
     r = dataset_build.build(cfg)
-    done = f"{r['built']} objects built, {r['skipped']} already done, {r['seconds']:.0f} s (timing in {r['timing']})"
+    done = (f"{r['built']} objects built ({r['engine']} engine), {r['skipped']} already done, {r['seconds']:.0f} s "
+            f"(timing in {r['timing']})")
     if r.get("partial"):
         print(f"wrote {r['out']} with the annotated objects only: {done}; {r['missing']} records missing")
     elif r["out"] is None:

@@ -25,7 +25,7 @@ in itself, and `timing.jsonl` in the parts directory says which backend built wh
 from __future__ import annotations
 
 import dataclasses
-import hashlib
+import functools
 import json
 import sys
 import time
@@ -37,89 +37,21 @@ import trimesh
 
 from ffcgs_jax import files
 from ffcgs_jax.config import check_all
-from ffcgs_jax.files import duplicate_stems
+from ffcgs_jax.dataset import engine, schema
 from ffcgs_jax.dataset import mcap_io as dataset_io
-from ffcgs_jax.dataset import schema
 from ffcgs_jax.dataset.config import DatasetConfig
+from ffcgs_jax.dataset.objects import Source, object_seed, objects_sha256, sources
 from ffcgs_jax.errors import FfcgsError
-from ffcgs_jax.geometry import mesh_io, procedural
-
-MESH_SUFFIXES = tuple(f".{s}" for s in mesh_io.FORMATS)
-
-
-@dataclass(frozen=True)
-class Source:
-    """One object to annotate: its name, split, category, mesh (loaded lazily from `path` unless given)."""
-
-    name: str
-    split: str
-    category: str
-    sha256: str
-    path: Path | None = None
-    mesh: trimesh.Trimesh | None = None
-
-    def load(self) -> trimesh.Trimesh:
-        return self.mesh if self.mesh is not None else mesh_io.load_mesh(self.path)
-
-
-
-
-def _categories(directory: Path) -> dict[str, str]:
-    """file name -> category from an objects.json beside the meshes (the YCB set has one), else empty."""
-    index = directory / "objects.json"
-    if not index.is_file():
-        return {}
-    try:
-        rows = json.loads(index.read_text()).get("objects", [])
-        return {r["file"]: str(r.get("category", "")) for r in rows if isinstance(r, dict) and "file" in r}
-    except (ValueError, AttributeError, TypeError):
-        return {}  # the category is a label for summaries, not worth failing a build over
-
-
-def sources(cfg: DatasetConfig) -> list[Source]:
-    """The objects of cfg.split in cfg.objects (sorted file order; test = index % 5 == 4), plus the procedural
-    shapes (train split)."""
-    if not cfg.objects:
-        raise FfcgsError("--objects is required: a directory of meshes (e.g. shared/objects/ycb)")
-    directory = Path(cfg.objects)
-    if directory.is_file():
-        raise FfcgsError(f"objects directory {directory} is a file, not a folder")
-    if not directory.is_dir():
-        raise FfcgsError(f"objects directory not found: {directory}")
-    files = sorted(p for p in directory.iterdir() if p.is_file() and p.suffix.lower() in MESH_SUFFIXES)
-    if not files:
-        raise FfcgsError(f"no mesh files ({', '.join(mesh_io.FORMATS)}) in {directory}")
-    stems = [p.stem for p in files]
-    dup = duplicate_stems(files)
-    if dup:
-        raise FfcgsError(f"{directory}: several files share the name(s) {dup}; object names must be unique")
-    cats = _categories(directory)
-    out = []
-    for i, p in enumerate(files):
-        split = "test" if i % 5 == 4 else "train"
-        if cfg.split in ("all", split):
-            # the geometry's identity, not the file's bytes: a re-saved or reformatted file is the same object
-            out.append(Source(p.stem, split, cats.get(p.name, ""), mesh_io.mesh_sha256(mesh_io.load_mesh(p)), path=p))
-    if cfg.split in ("train", "all"):
-        for i in range(cfg.procedural):
-            name, mesh = procedural.shape(cfg.seed, i)
-            if name in stems:
-                raise FfcgsError(f"{directory} has a file named like procedural shape {name!r}; rename it or "
-                                 f"build without --procedural")
-            out.append(Source(name, "train", "procedural", mesh_io.mesh_sha256(mesh), mesh=mesh))
-    return out
-
-
-def object_seed(seed: int, name: str, *extra: int) -> int:
-    """A 63-bit seed from the build seed, the object name and optional integers (rotation index, stream)."""
-    text = ":".join(["ffcgs-dataset", str(seed), name, *map(str, extra)])
-    return int.from_bytes(hashlib.sha256(text.encode()).digest()[:8], "little") >> 1
 
 
 def rotation(cfg: DatasetConfig, name: str, index: int) -> np.ndarray:
-    """The 3x3 rotation of record `index` of object `name`: a uniform yaw, or uniform over SO(3)."""
+    """The 3x3 rotation of record `index` of object `name`: a uniform yaw, or uniform over SO(3). In a labelled
+    build ("keep all") record 0 is the object as simulated (the identity), so its labels are the physics test's
+    outcomes for exactly its numbers; the others are augmented copies."""
     from scipy.spatial.transform import Rotation
 
+    if cfg.keep == "all" and index == 0:
+        return np.eye(3)
     rng = np.random.default_rng(object_seed(cfg.seed, name, index, 0))
     if cfg.rotation_mode == "yaw":
         return Rotation.from_rotvec([0.0, 0.0, rng.uniform(-np.pi, np.pi)]).as_matrix()
@@ -155,13 +87,14 @@ def rotate_mesh(mesh: trimesh.Trimesh, R: np.ndarray) -> trimesh.Trimesh:
 def record_config(cfg: DatasetConfig) -> dict:
     """The config stored in the dataset and checked on resume: everything but where the files are."""
     d = dataclasses.asdict(cfg)
-    for k in ("objects", "out", "shard", "annotate"):
+    for k in ("objects", "out", "shard", "annotate", "engine", "address", "task_cpus", "ray_from", "allow_test"):
         d.pop(k)
     for k in ("workers", "backend"):  # where the physics runs (the backends' outcomes agree: bench/RESULTS.md)
         d["physics"].pop(k)
     d["grasp"].pop("devices")  # where it runs, not what it computes
-    for k in ("cvae_oversample", "weights"):  # the planner samples geometric poses: cvae settings do not matter
-        d["grasp"]["sampling"].pop(k)
+    if cfg.sampler != "cvae":  # the planner samples geometric poses: cvae settings do not matter
+        for k in ("cvae_oversample", "weights"):
+            d["grasp"]["sampling"].pop(k)
     for k in ("lp_solver", "lp_pivots"):  # like the backend: the LP paths agree to their tolerance
         d["grasp"]["energy"].pop(k)
     return d
@@ -199,8 +132,13 @@ def annotation_path(parts_dir: Path, name: str) -> Path:
 
 def annotate(hand, spec, mesh: trimesh.Trimesh, cfg: DatasetConfig, name: str, grid=None,
              progress=None) -> Annotation:
-    """Plan, dedupe, physics-select (module docstring, steps 1-4)."""
+    """Plan, dedupe, physics-select (module docstring, steps 1-4); for a "keep all" build, `label.label`."""
     import jax
+
+    if cfg.keep == "all":
+        from ffcgs_jax.dataset import label
+
+        return Annotation(*label.label(hand, spec, mesh, cfg, name, grid))
 
     from ffcgs_jax.dataset import planner
     from ffcgs_jax.geometry import sdf as sdf_mod
@@ -249,29 +187,68 @@ def records(source: Source, mesh: trimesh.Trimesh, ann: Annotation, cfg: Dataset
             wrist_pose_noisy=noisy(poses, cfg.noise_trans, cfg.noise_rot, rng))
 
 
+@functools.lru_cache(maxsize=4)
+def _hand(name: str):
+    from ffcgs_jax.hand import kinematics as K
+    from ffcgs_jax.hand import spec as hand_spec
+
+    return K.load_hand(name), hand_spec.load_spec(name)
+
+
+def build_object(cfg: DatasetConfig, src: Source, parts_dir: Path, progress=None) -> dict | None:
+    """One object, the unit of work (a Ray task's, or the plain loop's): annotate it (or reuse its annotation file)
+    and write the parts of its rotations not yet finished. Returns its timing row, None when there was nothing
+    to do. Writes are atomic and a finished part is never rewritten, so running an object twice (a retried task,
+    two machines on one shared folder) gives the same files."""
+    import jax
+
+    done = set(dataset_io.done_records(parts_dir))
+    todo = {r for r in range(cfg.rotations) if schema.record_id(src.name, r) not in done}
+    if not todo:
+        return None
+    t0 = time.perf_counter()
+    hand, spec = _hand(cfg.hand)
+    mesh = src.load()
+    cached = annotation_path(parts_dir, src.name)
+    if cached.is_file():  # annotated before (this run was interrupted, or another machine did it)
+        ann = Annotation.load(cached)
+    elif not cfg.annotate:
+        return None
+    else:
+        ann = annotate(hand, spec, mesh, cfg, src.name, progress=progress)
+        cached.parent.mkdir(exist_ok=True)
+        ann.save(cached)
+    t1 = time.perf_counter()
+    for rec in records(src, mesh, ann, cfg, todo):
+        dataset_io.write_part(parts_dir, rec)
+    return {"object": src.name, "backend": jax.default_backend(), "physics_backend": cfg.physics.backend,
+            "cached": not ann.seconds, "records": len(todo), "grasps": len(todo) * len(ann.grasps["q"]),
+            **ann.counts, **{f"{k}_s": round(v, 3) for k, v in ann.seconds.items()},
+            "write_s": round(time.perf_counter() - t1, 3), "total_s": round(time.perf_counter() - t0, 3)}
+
+
 def build(cfg: DatasetConfig, show_progress: bool = True) -> dict:
-    """Run (or resume) the build; returns {"out", "built", "skipped", "seconds", "timing", "missing"}: "out" is None
-    when this shard finished but other shards' records are still missing (then "missing" counts them)."""
+    """Run (or resume) the build; returns {"out", "built", "skipped", "seconds", "timing", "missing", "engine"}:
+    "out" is None when this shard finished but other shards' records are still missing (then "missing" counts
+    them)."""
     import jax
     from tqdm.auto import tqdm
 
-    from ffcgs_jax.hand import kinematics as K
-    from ffcgs_jax.hand import spec as hand_spec
     from ffcgs_jax.physics import runner as physics_runner
 
     # `fj.build_dataset` lands here with no CLI parsing before it: nested configs are checked too
     if not isinstance(cfg, DatasetConfig):
         raise FfcgsError(f"build takes a DatasetConfig, got {type(cfg).__name__}")
     check_all(cfg)
+    engine.reachable(cfg.address)  # before anything is written or said
     srcs = sources(cfg)
     parts = dataset_io.parts_dir_for(cfg.out)
     if not cfg.annotate and not dataset_io.done_records(parts) \
             and not any(annotation_path(parts, s.name).is_file() for s in srcs):
         raise FfcgsError(f"--no-annotate found no annotated object in {parts / 'annotations'}, so the dataset "
                          "would be empty; copy the annotations there, or build without --no-annotate")
-    hand, spec = K.load_hand(cfg.hand), hand_spec.load_spec(cfg.hand)
-    extra = {"objects": [{"name": s.name, "split": s.split, "category": s.category, "mesh_sha256": s.sha256}
-                         for s in srcs],
+    _hand(cfg.hand)  # a bad hand is one line here, not in every task
+    extra = {"objects": [s.describe() for s in srcs], "objects_sha256": objects_sha256(srcs),
              "x64": bool(jax.config.jax_enable_x64)}
     writer = dataset_io.DatasetWriter(cfg.out, record_config(cfg), extra)
     # after the checks: a refused build says one line
@@ -281,50 +258,67 @@ def build(cfg: DatasetConfig, show_progress: bool = True) -> dict:
     cfg = dataclasses.replace(cfg, physics=dataclasses.replace(cfg.physics, backend=backend))
     expected = [schema.record_id(s.name, r) for s in srcs for r in range(cfg.rotations)]
     timing_log = writer.parts_dir / "timing.jsonl"
-    t_start = time.perf_counter()
-    built = skipped = 0
     k, n = cfg.shard_of()
-    bar = tqdm(srcs[k::n], desc="objects", unit="obj", disable=not show_progress, dynamic_ncols=True)
-    for src in bar:
-        todo = {r for r in range(cfg.rotations) if schema.record_id(src.name, r) not in writer.done}
-        if not todo:
-            skipped += 1
-            continue
-        bar.set_postfix_str(src.name)
-        t0 = time.perf_counter()
-        mesh = src.load()
+    mine = srcs[k::n]
+    todo = [s for s in mine if any(schema.record_id(s.name, r) not in writer.done for r in range(cfg.rotations))]
+    how, why = engine.choose(cfg, len(todo))
+    if why and show_progress:
+        print(f"ffcgs: {why}", file=sys.stderr)
+    t_start = time.perf_counter()
+    bar = tqdm(total=len(todo), desc="objects", unit="obj", disable=not show_progress, dynamic_ncols=True)
+    built = 0
 
-        def tick(tested, kept, _name=src.name):
-            bar.set_postfix_str(f"{_name}: +{tested} tested, {kept}/{cfg.per_object} kept")
-
-        cached = annotation_path(writer.parts_dir, src.name)
-        if cached.is_file():  # annotated before (this run was interrupted, or another machine did it)
-            ann = Annotation.load(cached)
-        elif not cfg.annotate:
-            continue
-        else:
-            ann = annotate(hand, spec, mesh, cfg, src.name, progress=tick)
-            cached.parent.mkdir(exist_ok=True)
-            ann.save(cached)
-        t1 = time.perf_counter()
-        for rec in records(src, mesh, ann, cfg, todo):
-            writer.add(rec)
+    def finished(src: Source, row: dict | None) -> None:
+        nonlocal built
+        bar.update(1)
+        if row is None:
+            return
         built += 1
-        row = {"object": src.name, "backend": jax.default_backend(), "physics_backend": cfg.physics.backend,
-               "cached": not ann.seconds, **ann.counts, **{f"{k}_s": round(v, 3) for k, v in ann.seconds.items()},
-               "rotations_s": round(time.perf_counter() - t1, 3), "total_s": round(time.perf_counter() - t0, 3)}
         with open(timing_log, "a") as f:
             f.write(json.dumps(row) + "\n")
         if show_progress:
-            tqdm.write(f"{src.name}: kept {ann.counts['kept']} of {ann.counts['valid']} valid "
-                       f"({ann.counts.get('tested_six_dir', 0)} physics-tested) in {row['total_s']:.0f} s")
-    bar.close()
+            c = row
+            if cfg.keep == "all":
+                tqdm.write(f"{src.name}: {c['candidates']} candidates, {c['passed_all']} pass all, "
+                           f"{row['total_s']:.1f} s")
+            else:
+                tqdm.write(f"{src.name}: kept {c['kept']} of {c['valid']} valid "
+                           f"({c.get('tested_six_dir', 0)} physics-tested) in {row['total_s']:.0f} s")
+
+    try:
+        engine.run(how, cfg, todo, writer.parts_dir, finished, bar, work=build_object)
+    finally:
+        bar.close()
     missing = len(set(expected) - set(dataset_io.done_records(writer.parts_dir)))
+    result = {"built": built, "skipped": len(mine) - len(todo), "missing": missing, "engine": how,
+              "seconds": time.perf_counter() - t_start, "timing": str(timing_log)}
     if not missing:
         writer.finish(expected)
     elif not cfg.annotate and cfg.shard_of() == (0, 1):
         writer.finish()  # a partial dataset, asked for: what is annotated so far
-        return {"out": cfg.out, "built": built, "skipped": skipped, "missing": missing, "partial": True,
-                "seconds": time.perf_counter() - t_start, "timing": str(timing_log)}
-    return {"out": None if missing else cfg.out, "built": built, "skipped": skipped, "missing": missing,
-            "seconds": time.perf_counter() - t_start, "timing": str(timing_log)}
+        return {"out": cfg.out, "partial": True, **result}
+    return {"out": None if missing else cfg.out, **result}
+
+
+def merge(out: str | Path) -> dict:
+    """`ffcgs dataset merge OUT`: the dataset file from the parts in OUT.parts/ (written by builds on any number
+    of machines into one shared folder), once every object's records are there; else one line saying how many
+    are missing."""
+    parts = dataset_io.parts_dir_for(out)
+    config = parts / dataset_io.CONFIG_NAME
+    if not config.is_file():
+        raise FfcgsError(f"{parts} is not a build's parts folder (no {dataset_io.CONFIG_NAME}): run `ffcgs "
+                         f"dataset build --out {out}` first")
+    try:
+        stored = json.loads(config.read_text())
+        names = [o["name"] for o in stored["extra"]["objects"]]
+        rotations = int(stored["config"]["rotations"])
+    except (ValueError, KeyError, TypeError) as e:
+        raise FfcgsError(f"{config} does not describe a build ({type(e).__name__}: {e})") from None
+    expected = [schema.record_id(n, r) for n in names for r in range(rotations)]
+    missing = sorted(set(expected) - set(dataset_io.done_records(parts)))
+    if missing:
+        raise FfcgsError(f"{len(missing)} of {len(expected)} records are not built yet (first: {missing[0]}); "
+                         f"finish the build (rerun the same command), then merge")
+    dataset_io.merge(parts, out, expected)
+    return {"out": str(out), "records": len(expected), "objects": len(names)}

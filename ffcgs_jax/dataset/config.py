@@ -4,8 +4,8 @@ import dataclasses
 
 from ffcgs_jax.config import SEED_MAX, check_integer, is_finite
 from ffcgs_jax.errors import FfcgsError
-from ffcgs_jax.physics.config import PhysicsConfig
-from ffcgs_jax.synthesis.config import GraspConfig
+from ffcgs_jax.physics.config import ALL_PROTOCOLS, PhysicsConfig
+from ffcgs_jax.synthesis.config import SAMPLERS, GraspConfig
 
 
 @dataclasses.dataclass(frozen=True)
@@ -60,6 +60,12 @@ SPLITS = ("train", "test", "all")
 
 ROTATION_MODES = ("yaw", "so3")
 
+KEEP = ("passing", "all")
+
+ENGINES = ("auto", "plain", "ray")
+
+LABEL_PROTOCOLS = ("lift-shake", "six-dir", "dexgraspbench")
+
 
 @dataclasses.dataclass(frozen=True)
 class DatasetConfig:
@@ -94,6 +100,24 @@ class DatasetConfig:
         annotate: False writes records only for objects already annotated (in OUT.parts/annotations, e.g. copied
             from the machines that annotated them) and merges them into a partial OUT, saying how many records
             are missing; the default annotates everything first.
+        keep: "passing" (the annotation above: plan, dedupe, physics-select until `per_object` pass both tests; the
+            learned sampler's data) or "all" (the data engine: `per_object` candidates per object from the
+            `grasp.sampler`, "planner" for the annealing, every one written with its `protocols` outcomes, moves,
+            reasons, analytic metrics and features, successes and failures alike; `dataset.label`).
+        sampler: where a "keep all" build's candidates start: "planner" (the annealing) or a synthesis sampler
+            (cvae, geometric, random); a "keep passing" build always plans.
+        protocols: the physics protocols a "keep all" build labels every candidate with (comma-separated).
+        complex: also build this many complex generated shapes (`procedural.complex_shape`, train split).
+        scale_min, scale_max: every object is scaled by a factor uniform in this range (drawn per object name).
+        allow_test: build from test-split files and held-out generated seeds too (refused by default: they are
+            what the benchmarks report on).
+        engine: "plain" (objects one after another in this process), "ray" (objects as Ray tasks: a local Ray
+            instance using every GPU and core of this machine, or the cluster at `address`), or "auto" (ray when
+            `address` is given or the build has more than `ray_from` objects and Ray is installed, else plain).
+        address: a Ray cluster to join ("auto", "HOST:PORT" or "ray://HOST:PORT"); empty starts a local one.
+        task_cpus: CPU cores each Ray task holds for its physics threads (its GPU share follows: the GPUs are split
+            evenly over the tasks that fit on a node's cores).
+        ray_from: objects from which "auto" starts Ray (its start-up, a few seconds, dominates smaller builds).
         planner, grasp, physics: the planner, the refinement (the grasp pipeline on given poses) and the test.
     """
 
@@ -114,6 +138,17 @@ class DatasetConfig:
     hand: str = "svh"
     shard: str = "0/1"
     annotate: bool = True
+    keep: str = "passing"
+    sampler: str = "planner"
+    protocols: str = ",".join(LABEL_PROTOCOLS)
+    complex: int = 0
+    scale_min: float = 1.0
+    scale_max: float = 1.0
+    allow_test: bool = False
+    engine: str = "auto"
+    address: str = ""
+    task_cpus: int = 4
+    ray_from: int = 8
     planner: PlannerConfig = PlannerConfig()
     # The planner draws its own geometric start poses; "geometric" here keeps the stored build config (and so
     # resuming a build) independent of the synthesis default, which is the cvae trained on this very data.
@@ -129,7 +164,32 @@ class DatasetConfig:
             raise FfcgsError(f"--shard must be K/N with 0 <= K < N, got {self.shard!r}")
         return k, n
 
+    def protocol_list(self) -> tuple[str, ...]:
+        out = tuple(p.strip() for p in self.protocols.split(",") if p.strip())
+        unknown = [p for p in out if p not in ALL_PROTOCOLS]
+        if unknown or not out:
+            raise FfcgsError(f"--protocols must name one or more of {', '.join(ALL_PROTOCOLS)}, got "
+                             f"{self.protocols!r}")
+        return out
+
     def check(self) -> None:
+        if self.keep not in KEEP:
+            raise FfcgsError(f"unknown keep {self.keep!r}; choices: {', '.join(KEEP)}")
+        if self.sampler not in ("planner", *SAMPLERS):
+            raise FfcgsError(f"unknown sampler {self.sampler!r}; samplers: planner, {', '.join(SAMPLERS)}")
+        if self.engine not in ENGINES:
+            raise FfcgsError(f"unknown engine {self.engine!r}; engines: {', '.join(ENGINES)}")
+        if self.engine == "plain" and self.address:
+            raise FfcgsError("--address joins a Ray cluster: it needs --engine ray or auto, not plain")
+        self.protocol_list()
+        for name, lo, hi in (("complex", 0, 100_000), ("task_cpus", 1, 1024), ("ray_from", 0, 1_000_000)):
+            check_integer(name.replace("_", "-"), getattr(self, name), lo, hi)
+        for name in ("scale_min", "scale_max"):
+            v = getattr(self, name)
+            if not (is_finite(v) and 0.1 <= v <= 10):
+                raise FfcgsError(f"{name.replace('_', '-')} must be a number in [0.1, 10], got {v!r}")
+        if self.scale_min > self.scale_max:
+            raise FfcgsError(f"scale-min ({self.scale_min}) must not exceed scale-max ({self.scale_max})")
         if self.split not in SPLITS:
             raise FfcgsError(f"unknown split {self.split!r}; splits: {', '.join(SPLITS)}")
         if self.rotation_mode not in ROTATION_MODES:

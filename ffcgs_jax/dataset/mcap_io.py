@@ -348,15 +348,18 @@ def shuffle_stream(items: Iterable, buffer_size: int, rng: np.random.Generator) 
 
 
 def _grasp_items(path: Path, rng: np.random.Generator | None) -> Iterator[tuple[Record, int]]:
-    """(record, grasp index) for every grasp, records in file order, grasps permuted by `rng` unless None."""
+    """(record, grasp index) for every grasp that holds (`Record.holds`), records in file order, grasps permuted
+    by `rng` unless None."""
     for rec in iter_records(path):
-        for g in range(rec.num_grasps) if rng is None else rng.permutation(rec.num_grasps):
+        held = np.flatnonzero(rec.holds())
+        for g in held if rng is None else rng.permutation(held):
             yield rec, int(g)
 
 
 def batches(path: str | Path, batch_size: int, seed: int, shuffle_buffer: int = 4096, epochs: int = 1,
             drop_remainder: bool = False) -> Iterator[dict[str, np.ndarray]]:
-    """Batches of grasps, each paired with its record's SDF, as stacked numpy arrays:
+    """Batches of the grasps that hold (`Record.holds`: a labelled build's failures are left out), each paired
+    with its record's SDF, as stacked numpy arrays:
 
         {"sdf": (B, R, R, R, 4) float32, "origin": (B, 3), "voxel_size": (B,), "table_z": (B,),
          "pose": (B, 4, 4), "q": (B, Q), "epsilon": (B,), "record": (B,) int64, "grasp": (B,) int64}

@@ -92,10 +92,43 @@ GRASP_ARRAYS = {"wrist_pose": "<f8", "q": "<f8", "epsilon": "<f8", "E": "<f8", "
 
 PHYSICS_ARRAYS = {"lift_shake_success": "|b1", "six_dir_success": "|b1"}
 
-OPTIONAL_GRASP_ARRAYS = {"wrist_pose_noisy": "<f8", **PHYSICS_ARRAYS}
 
-_NDIM = {"grid": 4, "origin": 1, "voxel_size": 0, "table_z": 0, "wrist_pose": 3, "wrist_pose_noisy": 3, "q": 2}
+def _label_arrays() -> dict[str, str]:
+    """The labels a labelled build (`DatasetConfig.keep` "all") stores beside every candidate, failures included:
+    per protocol p (its name with '-' written '_') what `physics.runner.evaluate` returns, and the synthesis's
+    analytic metrics and features. Floats beside the grasp itself are float32 (NaN where a protocol did not get
+    that far, e.g. a push after a penetration failure)."""
+    from ffcgs_jax.physics.config import ALL_PROTOCOLS
+
+    out = {"initial_penetration": "<f4", "palm_contact": "|b1", "physics_rerun_cpu": "|b1"}
+    for p in ALL_PROTOCOLS:
+        k = p.replace("-", "_")
+        out |= {f"{k}_success": "|b1", f"{k}_reason": "|i1", f"{k}_move": "<f4", f"{k}_rot": "<f4",
+                f"{k}_move_dir": "<f4", f"{k}_rot_dir": "<f4"}
+        if p.startswith("dexgraspbench"):
+            out[f"{k}_pregrasp_penetration"] = "<f4"
+    for k in PHYSICS_ARRAYS:
+        out.pop(k)  # the two fields every record format had
+    out |= {k: "|b1" for k in ("valid", "force_closure", "pose_collides", "palm_up", "tips_below_table", "lp_ok")}
+    out |= {k: "<f4" for k in ("E_q", "E_m", "support_min", "E_g_mesh", "E_c_mesh", "penetration",
+                               "table_penetration", "score", "contact_dist", "contacts")}
+    out["squeeze_dir"] = "<f8"  # the physics test's own input: a re-run must see the same numbers
+    out |= {"n_contacts": "|i1", "iters": "<i4"}
+    return out
+
+
+LABEL_ARRAYS = _label_arrays()
+"""Per-grasp labels and features of a labelled build; every one optional, the first dimension G."""
+
+OPTIONAL_GRASP_ARRAYS = {"wrist_pose_noisy": "<f8", **PHYSICS_ARRAYS, **LABEL_ARRAYS}
+
+_NDIM = {"grid": 4, "origin": 1, "voxel_size": 0, "table_z": 0, "wrist_pose": 3, "wrist_pose_noisy": 3, "q": 2,
+         "contact_dist": 2, "contacts": 3, "squeeze_dir": 2,
+         **{k: 2 for k in LABEL_ARRAYS if k.endswith(("_move_dir", "_rot_dir"))}}
 """Array ranks (1 where not listed: per-grasp values)."""
+
+SUCCESS_KEYS = tuple(k for k in OPTIONAL_GRASP_ARRAYS if k.endswith("_success"))
+"""Every per-protocol outcome a record can carry."""
 
 
 def _array_schema(name: str, dtype: str) -> dict:
@@ -186,6 +219,7 @@ class Record:
     category: str = ""
     info: dict = dataclasses.field(default_factory=dict)
     index: int = -1
+    labels: dict = dataclasses.field(default_factory=dict)
 
     @property
     def record_id(self) -> str:
@@ -199,9 +233,10 @@ class Record:
     def create(cls, *, object_name: str, mesh_sha256: str, rotation_index: int, rotation, split: str, sdf=None,
                grid=None, origin=None, voxel_size=None, table_z=None, wrist_pose, q, epsilon, E, E_g, E_c,
                lift_shake_success=None, six_dir_success=None, wrist_pose_noisy=None, category: str = "",
-               info: dict | None = None, index: int = -1) -> Record:
+               info: dict | None = None, index: int = -1, **labels) -> Record:
         """Check and convert. The SDF is either `sdf` (a `GradientSDF` or anything with .grid, .origin,
-        .voxel_size, .table_z) or the four arrays; float arrays become float32 (grid) / float64 (the rest)."""
+        .voxel_size, .table_z) or the four arrays; float arrays become float32 (grid) / float64 (the rest).
+        `labels`: any of `LABEL_ARRAYS`, each with G rows (floats may be NaN: not simulated that far)."""
         if sdf is not None:
             grid, origin, voxel_size, table_z = (np.asarray(getattr(sdf, k))
                                                  for k in ("grid", "origin", "voxel_size", "table_z"))
@@ -212,15 +247,16 @@ class Record:
         if not isinstance(split, str) or not split:
             raise FfcgsError(f"{where}: split must be a non-empty string, got {split!r}")
 
-        def arr(name, value, dtype, shape_ok, shape_text):
+        def arr(name, value, dtype, shape_ok, shape_text, nan_ok=False):
             if value is None:
                 raise FfcgsError(f"{where}: {name} is missing")
             a = np.asarray(value)
             if dtype == "|b1":
                 if a.dtype.kind not in "biu" or (a.dtype.kind != "b" and not np.isin(a, (0, 1)).all()):
                     raise FfcgsError(f"{where}: {name} must be booleans, got dtype {a.dtype}")
-            elif a.dtype.kind not in "fiu" or not np.isfinite(a).all():
-                raise FfcgsError(f"{where}: {name} must be finite numbers (dtype {a.dtype})")
+            elif a.dtype.kind not in "fiu" or not (np.isfinite(a) | (nan_ok and np.isnan(a))).all():
+                raise FfcgsError(f"{where}: {name} must be finite numbers{' or NaN' if nan_ok else ''} "
+                                 f"(dtype {a.dtype})")
             if not shape_ok(a.shape):
                 raise FfcgsError(f"{where}: {name} must have shape {shape_text}, got {a.shape}")
             return np.array(a, dtype=np.dtype(dtype), order="C")  # copy; keeps 0-d shapes
@@ -245,6 +281,12 @@ class Record:
         if wrist_pose_noisy is not None:
             wrist_pose_noisy = arr("wrist_pose_noisy", wrist_pose_noisy, "<f8", lambda s: s == (g, 4, 4),
                                    f"(G, 4, 4) = ({g}, 4, 4)")
+        unknown = sorted(set(labels) - set(LABEL_ARRAYS))
+        if unknown:
+            raise FfcgsError(f"{where}: unknown label(s) {unknown}; labels: schema.LABEL_ARRAYS")
+        labels = {k: arr(k, v, LABEL_ARRAYS[k], lambda s: len(s) == _NDIM.get(k, 1) and s[0] == g,
+                         f"{_NDIM.get(k, 1)}-D with G = {g} rows", nan_ok=LABEL_ARRAYS[k][1] == "f")
+                  for k, v in sorted(labels.items()) if v is not None}
         if not isinstance(category, str):
             raise FfcgsError(f"{where}: category must be a string, got {category!r}")
         info = {} if info is None else info
@@ -254,7 +296,7 @@ class Record:
         return cls(object_name=object_name, mesh_sha256=mesh_sha256, rotation_index=int(rotation_index),
                    rotation=rotation, split=split, grid=grid, origin=origin, voxel_size=voxel_size, table_z=table_z,
                    wrist_pose=wrist_pose, q=q, **scalars, **physics, wrist_pose_noisy=wrist_pose_noisy,
-                   category=category, info=info, index=int(index))
+                   category=category, info=info, index=int(index), labels=labels)
 
     def meta(self) -> dict:
         meta = {"record_id": self.record_id, "object_name": self.object_name, "mesh_sha256": self.mesh_sha256,
@@ -270,7 +312,17 @@ class Record:
 
     def grasp_arrays(self) -> dict[str, np.ndarray]:
         out = {k: getattr(self, k) for k in GRASP_ARRAYS}
-        out.update({k: getattr(self, k) for k in OPTIONAL_GRASP_ARRAYS if getattr(self, k) is not None})
+        out.update({k: getattr(self, k) for k in ("wrist_pose_noisy", *PHYSICS_ARRAYS) if getattr(self, k) is not None})
+        return out | self.labels
+
+    def holds(self) -> np.ndarray:
+        """(G,) bool: the grasps that passed every protocol this record was labelled with (all, when none): the
+        training set of the learned sampler is this filter over the records, successes only."""
+        out = np.ones(self.num_grasps, bool)
+        for k in SUCCESS_KEYS:
+            v = self.grasp_arrays().get(k)
+            if v is not None:
+                out &= v
         return out
 
 

@@ -44,14 +44,16 @@ class TrainData(NamedTuple):
 
 
 def load(path: str | Path, noisy: bool = True) -> TrainData:
-    """Read a dataset file; records without grasps are dropped. `noisy` adds each grasp's noisy copy."""
+    """Read a dataset file's successful grasps (`Record.holds`: all of a "keep passing" build, those that passed
+    every protocol of a labelled one); records without any are dropped. `noisy` adds each grasp's noisy copy."""
     path = Path(path)
     if not path.exists():
         raise FfcgsError(f"dataset file not found: {path} (build one with `ffcgs dataset build`)")
     check_file(path, "dataset file")
     grids, origins, voxels, names, poses, recs, flags = [], [], [], [], [], [], []
     for rec in dataset_io.iter_records(path):
-        if rec.num_grasps == 0:
+        held = rec.holds()  # a labelled build holds its failures too: the sampler learns the successes
+        if not held.any():
             continue
         s = len(grids)
         if grids and rec.grid.shape != grids[0].shape:
@@ -61,11 +63,11 @@ def load(path: str | Path, noisy: bool = True) -> TrainData:
         origins.append(rec.origin)
         voxels.append(float(rec.voxel_size))
         names.append(rec.object_name)
-        copies = [(rec.wrist_pose, False)]
+        copies = [(rec.wrist_pose[held], False)]
         if noisy:
             if rec.wrist_pose_noisy is None:
                 raise FfcgsError(f"{path}: record {rec.record_id} has no noisy poses; set data.noisy = false")
-            copies.append((rec.wrist_pose_noisy, True))
+            copies.append((rec.wrist_pose_noisy[held], True))
         for p, flag in copies:
             poses.append(p)
             recs.append(np.full(len(p), s, np.int32))

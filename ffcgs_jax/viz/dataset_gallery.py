@@ -15,17 +15,17 @@ from ffcgs_jax.viz.render import save_png
 def find_mesh(name: str, sha256: str, config: dict, objects_dir: Path | None):
     """The source mesh of an object: regenerated for a procedural shape, else `objects_dir/<name>.*`, checked
     against the hash the record carries; None if not found."""
-    from ffcgs_jax.dataset import build as dataset_build
-    from ffcgs_jax.geometry import mesh_io, procedural
+    from ffcgs_jax.dataset import objects
+    from ffcgs_jax.geometry import mesh_io
 
-    if name.startswith("proc_"):
-        mesh = procedural.shape(int(config.get("seed", 0)), int(name.split("_")[1]))[1]
+    mesh = objects.regenerate(name, config)
+    if mesh is not None:
         return mesh if mesh_io.mesh_sha256(mesh) == sha256 else None
     if objects_dir is None:
         return None
     for p in sorted(objects_dir.glob(f"{name}.*")):
-        if p.suffix.lower() in dataset_build.MESH_SUFFIXES:
-            mesh = mesh_io.load_mesh(p)
+        if p.suffix.lower() in objects.MESH_SUFFIXES:
+            mesh = objects.scaled(mesh_io.load_mesh(p), objects.object_scale(objects.stored_config(config), name))
             # datasets built before the geometry hash recorded the file's bytes
             if sha256 in (mesh_io.mesh_sha256(mesh), hashlib.sha256(p.read_bytes()).hexdigest()):
                 return mesh

@@ -26,6 +26,7 @@ from scipy.spatial.transform import Rotation
 from ffcgs_jax.cli import main as cli_main
 from ffcgs_jax.dataset import build as dataset_build
 from ffcgs_jax.dataset import mcap_io as dataset_io
+from ffcgs_jax.dataset import objects as dataset_objects
 from ffcgs_jax.dataset import planner, schema
 from ffcgs_jax.dataset.config import DatasetConfig
 from ffcgs_jax.errors import FfcgsError
@@ -322,7 +323,7 @@ def test_records_noisy_poses_match_the_config(main_build):
     dts, dws = [], []
     for rec in main_build["records"]:
         assert rec.wrist_pose_noisy is not None and rec.wrist_pose_noisy.shape == rec.wrist_pose.shape
-        rng = np.random.default_rng(dataset_build.object_seed(cfg.seed, rec.object_name, rec.rotation_index, 2))
+        rng = np.random.default_rng(dataset_objects.object_seed(cfg.seed, rec.object_name, rec.rotation_index, 2))
         np.testing.assert_allclose(rec.wrist_pose_noisy,
                                    dataset_build.noisy(rec.wrist_pose, cfg.noise_trans, cfg.noise_rot, rng),
                                    atol=1e-15)
@@ -352,16 +353,17 @@ def test_sources_split_by_sorted_index(tmp_path):
     (tmp_path / "objects.json").write_text(json.dumps({"objects": [{"file": "m03.ply", "category": "cup"}]}))
 
     def names_of(split, proc=0):
-        srcs = dataset_build.sources(DatasetConfig(objects=str(tmp_path), split=split, procedural=proc))
+        srcs = dataset_objects.sources(DatasetConfig(objects=str(tmp_path), split=split, procedural=proc,
+                                                     allow_test=split != "train"))
         return [(s.name, s.split) for s in srcs], srcs
 
-    test, _ = names_of("test", proc=2)
+    test, _ = names_of("test")
     assert test == [("m04", "test"), ("m09", "test")]  # no procedural shapes in the test split
     train, srcs = names_of("train", proc=2)
     procs = [procedural.shape(0, i)[0] for i in range(2)]
     assert train == [(n, "train") for i, n in enumerate(names) if i % 5 != 4] + [(p, "train") for p in procs]
     assert {s.name: s.category for s in srcs}["m03"] == "cup"
-    assert all(s.category == "procedural" and s.mesh is not None for s in srcs[-2:])
+    assert all(s.category == "procedural" and s.family == "procedural" for s in srcs[-2:])
     all_, _ = names_of("all", proc=2)
     assert sorted(all_) == sorted(set(train) | set(test)) and len(all_) == 12
     assert [n for n, _ in names_of("all")[0]] == names
@@ -660,9 +662,9 @@ def test_start_channels_without_rank_promotion(hand):
 
 def test_source_names_clashing_with_procedural_shapes_are_refused(tmp_path):
     shutil.copy(ASSETS / "box.ply", tmp_path / "proc_0000_box.ply")
-    with pytest.raises(FfcgsError, match="named like procedural shape 'proc_0000_box'"):
-        dataset_build.sources(DatasetConfig(objects=str(tmp_path), split="all", procedural=1))
-    assert len(dataset_build.sources(DatasetConfig(objects=str(tmp_path), split="all"))) == 1
+    with pytest.raises(FfcgsError, match="named like generated shape 'proc_0000_box'"):
+        dataset_objects.sources(DatasetConfig(objects=str(tmp_path), split="all", procedural=1))
+    assert len(dataset_objects.sources(DatasetConfig(objects=str(tmp_path), split="all"))) == 1
 
 
 def test_shards_then_partial_merge_then_full(tmp_path, objects_dir, main_build):
