@@ -87,7 +87,8 @@ def rotate_mesh(mesh: trimesh.Trimesh, R: np.ndarray) -> trimesh.Trimesh:
 def record_config(cfg: DatasetConfig) -> dict:
     """The config stored in the dataset and checked on resume: everything but where the files are."""
     d = dataclasses.asdict(cfg)
-    for k in ("objects", "out", "shard", "annotate", "engine", "address", "task_cpus", "ray_from", "allow_test"):
+    for k in ("objects", "out", "shard", "annotate", "engine", "address", "task_cpus", "ray_from", "allow_test", "cpus",
+              "gpus"):
         d.pop(k)
     for k in ("workers", "backend"):  # where the physics runs (the backends' outcomes agree: bench/RESULTS.md)
         d["physics"].pop(k)

@@ -117,6 +117,8 @@ class DatasetConfig:
         address: a Ray cluster to join ("auto", "HOST:PORT" or "ray://HOST:PORT"); empty starts a local one.
         task_cpus: CPU cores each Ray task holds for its physics threads (its GPU share follows: the GPUs are split
             evenly over the tasks that fit on a node's cores).
+        cpus, gpus: how much of this machine a local Ray instance takes (0 cores / -1 GPUs: all of them), to share
+            a workstation; a cluster joined with `address` has its own.
         ray_from: objects from which "auto" starts Ray (its start-up, a few seconds, dominates smaller builds).
         planner, grasp, physics: the planner, the refinement (the grasp pipeline on given poses) and the test.
     """
@@ -148,6 +150,8 @@ class DatasetConfig:
     engine: str = "auto"
     address: str = ""
     task_cpus: int = 4
+    cpus: int = 0
+    gpus: int = -1
     ray_from: int = 8
     planner: PlannerConfig = PlannerConfig()
     # The planner draws its own geometric start poses; "geometric" here keeps the stored build config (and so
@@ -182,7 +186,8 @@ class DatasetConfig:
         if self.engine == "plain" and self.address:
             raise FfcgsError("--address joins a Ray cluster: it needs --engine ray or auto, not plain")
         self.protocol_list()
-        for name, lo, hi in (("complex", 0, 100_000), ("task_cpus", 1, 1024), ("ray_from", 0, 1_000_000)):
+        for name, lo, hi in (("complex", 0, 100_000), ("task_cpus", 1, 1024), ("ray_from", 0, 1_000_000),
+                             ("cpus", 0, 100_000), ("gpus", -1, 1024)):
             check_integer(name.replace("_", "-"), getattr(self, name), lo, hi)
         for name in ("scale_min", "scale_max"):
             v = getattr(self, name)

@@ -49,8 +49,9 @@ def choose(cfg: DatasetConfig, n_objects: int) -> tuple[str, str | None]:
         return "plain", None
     if not ray_available():
         return "plain", f"objects run one after another: {INSTALL}"
-    if (os.cpu_count() or 1) < 2 * cfg.task_cpus:
-        return "plain", (f"objects run one after another: {os.cpu_count()} cores hold fewer than two tasks of "
+    cores = cfg.cpus or os.cpu_count() or 1
+    if cores < 2 * cfg.task_cpus:
+        return "plain", (f"objects run one after another: {cores} cores hold fewer than two tasks of "
                          f"--task-cpus {cfg.task_cpus}")
     return "ray", None
 
@@ -111,7 +112,8 @@ def _connect(cfg: DatasetConfig) -> bool:
                 ray.init(address=cfg.address, runtime_env=runtime_env, log_to_driver=False)
                 return False
             # "local": a new instance of our own, never a cluster that `ray start` left running on this machine
-            ray.init(address="local", runtime_env=runtime_env, log_to_driver=False)
+            ray.init(address="local", runtime_env=runtime_env, log_to_driver=False, num_cpus=cfg.cpus or None,
+                     num_gpus=None if cfg.gpus < 0 else cfg.gpus)
             return True
     except (ConnectionError, RuntimeError, ValueError) as e:
         where = cfg.address or "a local Ray instance"
