@@ -84,7 +84,8 @@ def summarise(engine: str, wall: float, out: Path, tasks: int) -> dict:
 def tasks_in_flight(engine: str, args) -> int:
     if engine == "plain":
         return 1
-    return max(1, (args.cpus or os.cpu_count() or 1) // args.task_cpus)
+    cores = args.cpus or os.cpu_count() or 1
+    return max(1, cores // max(1, min(args.task_cpus, cores // 2)))  # as `engine.task_resources` splits them
 
 
 def machine(args) -> str:

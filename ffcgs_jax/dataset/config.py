@@ -113,10 +113,11 @@ class DatasetConfig:
             what the benchmarks report on).
         engine: "plain" (objects one after another in this process), "ray" (objects as Ray tasks: a local Ray
             instance using every GPU and core of this machine, or the cluster at `address`), or "auto" (ray when
-            `address` is given or the build has more than `ray_from` objects and Ray is installed, else plain).
+            `address` is given, or the build has more than `ray_from` objects, Ray is installed and the machine
+            has 2 cores or more; else plain).
         address: a Ray cluster to join ("auto", "HOST:PORT" or "ray://HOST:PORT"); empty starts a local one.
-        task_cpus: CPU cores each Ray task holds for its physics threads (its GPU share follows: the GPUs are split
-            evenly over the tasks that fit on a node's cores).
+        task_cpus: CPU cores each Ray task holds for its physics threads, at most half the cluster's (its GPU share
+            follows: the GPUs are split evenly over the tasks that fit on the cores).
         cpus, gpus: how much of this machine a local Ray instance takes (0 cores / -1 GPUs: all of them), to share
             a workstation; a cluster joined with `address` has its own.
         ray_from: objects from which "auto" starts Ray (its start-up, a few seconds, dominates smaller builds).

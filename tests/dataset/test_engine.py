@@ -306,6 +306,9 @@ def test_generated_supply_is_deterministic_distinct_and_scaled():
     assert [s.describe() for s in a] == [s.describe() for s in b]
     assert dataset_objects.objects_sha256(a) == dataset_objects.objects_sha256(b)
     assert len({s.sha256 for s in a}) == len(a) == 54  # distinct geometry
+    # thousands of distinct objects from one seed
+    many = dataset_objects.sources(DatasetConfig(procedural=2000, complex=100, seed=11))
+    assert len({s.sha256 for s in many}) == 2100
     assert {s.family for s in a} == {"procedural", "complex"} and all(s.split == "train" for s in a)
     scales = np.array([s.scale for s in a])
     assert (0.8 <= scales).all() and (scales <= 1.2).all() and scales.std() > 0.05
@@ -323,6 +326,20 @@ def test_generated_supply_is_deterministic_distinct_and_scaled():
 
 
 def test_engine_choice_and_task_resources(monkeypatch):
+    import builtins
+
+    real_import = builtins.__import__
+
+    def no_ray(name, *a, **kw):
+        if name == "ray":
+            raise ModuleNotFoundError("No module named 'ray'", name="ray")
+        return real_import(name, *a, **kw)
+
+    with monkeypatch.context() as m:
+        m.setattr(builtins, "__import__", no_ray)
+        with pytest.raises(FfcgsError, match=r"Ray is not installed: pip install -e \"\.\[scale\]\""):
+            engine.choose(DatasetConfig(engine="ray"), 1)
+        assert engine.choose(DatasetConfig(), 100)[0] == "plain"
     assert engine.choose(DatasetConfig(engine="plain"), 10_000) == ("plain", None)
     assert engine.choose(DatasetConfig(engine="ray"), 1) == ("ray", None)
     assert engine.choose(DatasetConfig(address="auto"), 1) == ("ray", None)
@@ -330,12 +347,15 @@ def test_engine_choice_and_task_resources(monkeypatch):
     monkeypatch.setattr(os, "cpu_count", lambda: 16)
     assert engine.choose(DatasetConfig(), 100) == ("ray", None)
     monkeypatch.setattr(os, "cpu_count", lambda: 2)
+    assert engine.choose(DatasetConfig(), 100) == ("ray", None)
+    monkeypatch.setattr(os, "cpu_count", lambda: 1)
     how, why = engine.choose(DatasetConfig(), 100)
-    assert how == "plain" and "fewer than two tasks" in why
+    assert how == "plain" and "one core holds one task" in why
     # 16 cores and one GPU: four tasks of four cores share it; four GPUs on 64 cores likewise
     assert engine.task_resources(DatasetConfig(), {"CPU": 16, "GPU": 1}) == (4, 0.25)
     assert engine.task_resources(DatasetConfig(), {"CPU": 64, "GPU": 4}) == (4, 0.25)
-    assert engine.task_resources(DatasetConfig(task_cpus=8), {"CPU": 4}) == (4, 0.0)
+    assert engine.task_resources(DatasetConfig(task_cpus=8), {"CPU": 4}) == (2, 0.0)  # two in flight at least
+    assert engine.task_resources(DatasetConfig(), {"CPU": 2}) == (1, 0.0)
     with pytest.raises(FfcgsError, match="needs --engine ray or auto"):
         DatasetConfig(engine="plain", address="auto").check()
 
