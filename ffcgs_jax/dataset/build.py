@@ -183,7 +183,8 @@ def records(source: Source, mesh: trimesh.Trimesh, ann: Annotation, cfg: Dataset
         rng = np.random.default_rng(object_seed(cfg.seed, source.name, r, 2))
         yield schema.Record.create(
             object_name=source.name, mesh_sha256=source.sha256, rotation_index=r, rotation=R, split=source.split,
-            category=source.category, info=ann.counts, sdf=grid,
+            category=source.category, info=ann.counts | ({"scale": source.scale} if source.scale != 1 else {}),
+            sdf=grid,
             **(ann.grasps | {"wrist_pose": poses}),
             wrist_pose_noisy=noisy(poses, cfg.noise_trans, cfg.noise_rot, rng))
 

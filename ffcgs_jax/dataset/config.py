@@ -184,6 +184,9 @@ class DatasetConfig:
             raise FfcgsError(f"unknown sampler {self.sampler!r}; samplers: planner, {', '.join(SAMPLERS)}")
         if self.engine not in ENGINES:
             raise FfcgsError(f"unknown engine {self.engine!r}; engines: {', '.join(ENGINES)}")
+        if self.keep == "all" and self.physics_test == "none":
+            raise FfcgsError("--keep all labels every candidate with the physics test (--protocols); "
+                             "--physics-test none applies to --keep passing only")
         if self.engine == "plain" and self.address:
             raise FfcgsError("--address joins a Ray cluster: it needs --engine ray or auto, not plain")
         self.protocol_list()

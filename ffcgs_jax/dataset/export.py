@@ -9,9 +9,9 @@ resolution R and the channel count Q, else export to a folder). N = records, M =
                  grasp_start (N + 1,) int64: record n's grasps are rows grasp_start[n]:grasp_start[n + 1] of the
                  per-grasp arrays.
     per grasp:   wrist_pose (M, 4, 4), q (M, Q), epsilon, E, E_g, E_c (M,), grasp_record (M,) int64 (its record's
-                 row); and when any record has them, wrist_pose_noisy (M, 4, 4) and lift_shake_success,
-                 six_dir_success (M,) bool, with has_<name> (N,) bool marking the records that do (the others' rows
-                 are NaN / False).
+                 row); and when any record has them, wrist_pose_noisy (M, 4, 4), lift_shake_success,
+                 six_dir_success (M,) bool and a labelled build's labels (`schema.LABEL_ARRAYS`, (M, ...)), with
+                 has_<name> (N,) bool marking the records that do (the others' rows are NaN / False / -1).
     whole file:  config_json () str (the /config message), format () str "ffcgs.dataset.npz.v1".
 
 `--out DIR` (any path not ending in .npz): one DIR/<record_id>.npz per record, streamed (one record in memory at a
@@ -101,17 +101,14 @@ def _stacked(dataset: Path, records) -> dict[str, np.ndarray]:
                grasp_start=np.concatenate([[0], np.cumsum(counts)]).astype(np.int64),
                grasp_record=np.repeat(np.arange(len(recs), dtype=np.int64), counts),
                **{k: np.concatenate([getattr(r, k) for r in recs]) for k in GRASP_ARRAYS})
+    arrays = [r.grasp_arrays() for r in recs]
     for k, dtype in OPTIONAL_GRASP_ARRAYS.items():
-        has = np.array([getattr(r, k) is not None for r in recs])
+        has = np.array([k in a for a in arrays])
         if has.any():
-            fill = False if dtype == "|b1" else np.nan
-            out[k] = np.concatenate([getattr(r, k) if getattr(r, k) is not None
-                                     else np.full((r.num_grasps, *_tail(recs, k)), fill, np.dtype(dtype))
-                                     for r in recs])
+            # where a record lacks it: False, NaN, or -1 for the integer labels (reasons, counts)
+            fill = {"b": False, "f": np.nan}.get(np.dtype(dtype).kind, -1)
+            tail = next(a[k].shape[1:] for a in arrays if k in a)
+            out[k] = np.concatenate([a[k] if k in a else np.full((r.num_grasps, *tail), fill, np.dtype(dtype))
+                                     for r, a in zip(recs, arrays)])
             out[f"has_{k}"] = has
     return out
-
-
-def _tail(recs: list[Record], key: str) -> tuple[int, ...]:
-    """The per-grasp shape of optional array `key` (from a record that has it)."""
-    return next(getattr(r, key).shape[1:] for r in recs if getattr(r, key) is not None)

@@ -347,19 +347,21 @@ def shuffle_stream(items: Iterable, buffer_size: int, rng: np.random.Generator) 
         yield buf[j]
 
 
-def _grasp_items(path: Path, rng: np.random.Generator | None) -> Iterator[tuple[Record, int]]:
-    """(record, grasp index) for every grasp that holds (`Record.holds`), records in file order, grasps permuted
-    by `rng` unless None."""
+def _grasp_items(path: Path, rng: np.random.Generator | None, held_only: bool
+                 ) -> Iterator[tuple[Record, int]]:
+    """(record, grasp index) for every grasp (that holds, `Record.holds`, if `held_only`), records in file order,
+    grasps permuted by `rng` unless None."""
     for rec in iter_records(path):
-        held = np.flatnonzero(rec.holds())
-        for g in held if rng is None else rng.permutation(held):
+        idx = np.flatnonzero(rec.holds()) if held_only else np.arange(rec.num_grasps)
+        for g in idx if rng is None else rng.permutation(idx):
             yield rec, int(g)
 
 
 def batches(path: str | Path, batch_size: int, seed: int, shuffle_buffer: int = 4096, epochs: int = 1,
-            drop_remainder: bool = False) -> Iterator[dict[str, np.ndarray]]:
-    """Batches of the grasps that hold (`Record.holds`: a labelled build's failures are left out), each paired
-    with its record's SDF, as stacked numpy arrays:
+            drop_remainder: bool = False, held_only: bool = False) -> Iterator[dict[str, np.ndarray]]:
+    """Batches of grasps (with `held_only`, only those that passed every protocol their record was labelled with,
+    `Record.holds`: a labelled build's successes, what the learned sampler trains on), each paired with its
+    record's SDF, as stacked numpy arrays:
 
         {"sdf": (B, R, R, R, 4) float32, "origin": (B, 3), "voxel_size": (B,), "table_z": (B,),
          "pose": (B, 4, 4), "q": (B, Q), "epsilon": (B,), "record": (B,) int64, "grasp": (B,) int64}
@@ -378,7 +380,7 @@ def batches(path: str | Path, batch_size: int, seed: int, shuffle_buffer: int = 
     for epoch in range(epochs):
         rng = np.random.default_rng([int(seed), epoch])
 
-        items = _grasp_items(path, rng if shuffle_buffer > 0 else None)
+        items = _grasp_items(path, rng if shuffle_buffer > 0 else None, held_only)
         stream = shuffle_stream(items, shuffle_buffer, rng) if shuffle_buffer > 1 else items
         batch: list = []
         shape = None

@@ -126,7 +126,9 @@ def snapshot(folder: Path) -> dict[str, str]:
 CASES = [
     (["frobnicate"], "unknown command 'frobnicate'"),
     (["dataset"], "needs a subcommand"),
-    (["dataset", "merge"], "needs a subcommand"),
+    (["dataset", "mrege"], "needs a subcommand"),
+    (["dataset", "merge", "d.mcap"], "is not a build's parts folder"),
+    (["dataset", "merge", "d.txt"], "must be an .mcap file"),
     # grasp
     (["grasp"], "needs an object .* or --depth FRAMES"),
     (["grasp", "nosuchobject"], "mesh file not found: nosuchobject"),

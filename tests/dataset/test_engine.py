@@ -105,8 +105,22 @@ def test_every_candidate_is_written_with_its_labels(plain):
     held = sum(int(r.holds().sum()) for r in recs)
     if held:
         assert len(learning_data.load(plain, noisy=False).pose) == held
-    batches = list(dataset_io.batches(plain, 4, seed=0))
+    batches = list(dataset_io.batches(plain, 4, seed=0, held_only=True))
     assert sum(len(b["q"]) for b in batches) == held
+    assert sum(len(b["q"]) for b in dataset_io.batches(plain, 4, seed=0)) == N_OBJECTS * PER_OBJECT
+
+
+
+def test_export_carries_the_labels(plain, tmp_path):
+    from ffcgs_jax.dataset import export
+
+    export.export(plain, tmp_path / "x.npz")
+    recs = list(dataset_io.iter_records(plain))
+    with np.load(tmp_path / "x.npz") as z:
+        for k in ("six_dir_move_dir", "dexgraspbench_reason", "lift_shake_success", "valid", "contacts"):
+            np.testing.assert_array_equal(z[k], np.concatenate([r.grasp_arrays()[k] for r in recs]))
+            assert z[f"has_{k}"].all()
+        assert z["six_dir_move_dir"].shape == (N_OBJECTS * PER_OBJECT, 6)
 
 
 def test_labels_match_a_rerun_of_the_physics_test(plain):
@@ -358,6 +372,10 @@ def test_engine_choice_and_task_resources(monkeypatch):
     assert engine.task_resources(DatasetConfig(), {"CPU": 2}) == (1, 0.0)
     with pytest.raises(FfcgsError, match="needs --engine ray or auto"):
         DatasetConfig(engine="plain", address="auto").check()
+    with pytest.raises(FfcgsError, match="applies to --keep passing only"):
+        DatasetConfig(keep="all", physics_test="none").check()
+    with pytest.raises(FfcgsError, match="--protocols must name one or more of"):
+        DatasetConfig(keep="all", protocols="lift-shake,shake").check()
 
 
 def test_merge_with_missing_records_is_one_line(capsys, plain, tmp_path):
