@@ -254,10 +254,13 @@ def build(cfg: DatasetConfig, show_progress: bool = True) -> dict:
              "x64": bool(jax.config.jax_enable_x64)}
     writer = dataset_io.DatasetWriter(cfg.out, record_config(cfg), extra)
     # after the checks: a refused build says one line
-    backend, note = physics_runner.resolve_backend(cfg.physics.backend, cfg.physics_chunk)
+    labelled = cfg.keep == "all"
+    backend, note = physics_runner.resolve_backend(cfg.physics.backend,
+                                                   cfg.per_object if labelled else cfg.physics_chunk)
     if note and show_progress:
         print(f"ffcgs: {note}", file=sys.stderr)
-    cfg = dataclasses.replace(cfg, physics=dataclasses.replace(cfg.physics, backend=backend))
+    if not labelled:  # a labelled build keeps "auto": each protocol then runs where it can (dexgraspbench: CPU)
+        cfg = dataclasses.replace(cfg, physics=dataclasses.replace(cfg.physics, backend=backend))
     expected = [schema.record_id(s.name, r) for s in srcs for r in range(cfg.rotations)]
     timing_log = writer.parts_dir / "timing.jsonl"
     k, n = cfg.shard_of()
