@@ -294,7 +294,11 @@ def q_distance_reference(wrenches, basis) -> float:
     a_eq[6, k:] = 1.0
     b_eq = np.zeros(7)
     b_eq[6] = 1.0
-    res = scipy.optimize.linprog(cost, A_eq=a_eq, b_eq=b_eq, bounds=(0, None), method="highs")
+    # HiGHS's default feasibility tolerances (1e-7) are coarser than the in-graph LP it checks (`simplex.pivot_tol`,
+    # 1e-9): at small wrench scales its answer was the one off (a rank-deficient set, |W| <= 0.014: 4.6e-9 away from
+    # a basis certified optimal to 1e-9 in NumPy). The reference is held to 1e-10.
+    res = scipy.optimize.linprog(cost, A_eq=a_eq, b_eq=b_eq, bounds=(0, None), method="highs",
+                                 options={"primal_feasibility_tolerance": 1e-10, "dual_feasibility_tolerance": 1e-10})
     if res.status != 0:
         raise FfcgsError(f"Q-distance LP failed ({res.message}); does the basis positively span R^6?")
     return max(0.0, float(res.fun))

@@ -25,7 +25,9 @@ U = quality.basis(64)
 K = U.shape[1]
 B = 32  # LPs per hypothesis example: one compiled call
 TOL = 1e-9
-SETTINGS = settings(max_examples=25, deadline=None, database=None)
+# derandomized: CI must give one verdict per commit (a random search once failed CI on a reference that was off,
+# not the solver: metrics.q_distance_reference). Search anew locally with derandomize=False.
+SETTINGS = settings(max_examples=25, deadline=None, database=None, derandomize=True)
 
 CONTACT_KINDS = ["spread", "oneside", "coincident"]
 MATRIX_KINDS = ["gauss", "duplicated", "rank_deficient", "halfspace", "point", "zero_column"]
