@@ -16,6 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from ffcgs_jax.dataset import mcap_io as dataset_io
+from ffcgs_jax.dataset.schema import SUCCESS_KEYS
 from ffcgs_jax.files import check_file
 
 
@@ -53,8 +54,16 @@ def stats(path: str | Path) -> dict:
     per_object: dict[str, dict] = {}
     eps, E_g, E_c, splits = [], [], [], {}
     n_records = 0
+    labelled: dict[str, int] = {}  # a labelled build's record 0 per object: candidates and passes per protocol
     for rec in dataset_io.iter_records(path):
         n_records += 1
+        if rec.rotation_index == 0 and "candidates" in rec.info:
+            arrays = rec.grasp_arrays()
+            labelled["candidates"] = labelled.get("candidates", 0) + rec.num_grasps
+            labelled["all"] = labelled.get("all", 0) + int(rec.holds().sum())
+            for k in SUCCESS_KEYS:
+                if k in arrays:
+                    labelled[k] = labelled.get(k, 0) + int(arrays[k].sum())
         s = splits.setdefault(rec.split, {"records": 0, "grasps": 0, "objects": set()})
         s["records"] += 1
         s["grasps"] += rec.num_grasps
@@ -76,8 +85,9 @@ def stats(path: str | Path) -> dict:
         c = cat.setdefault(o["category"], {"objects": 0, "grasps": 0, "tested": 0, "passed": 0, "short": 0})
         c["objects"] += 1
         c["grasps"] += o["grasps"]
-        c["tested"] += int(o["info"].get("tested_six_dir", 0))
-        c["passed"] += int(o["info"].get("passed_both", 0))
+        # a labelled build tests every candidate with every protocol: its "passed" is passed_all
+        c["tested"] += int(o["info"].get("tested_six_dir", o["info"].get("candidates", 0)))
+        c["passed"] += int(o["info"].get("passed_both", o["info"].get("passed_all", 0)))
         c["short"] += int(o["per_record"] < config["config"].get("per_object", 0))
     for c in cat.values():
         c["physics_pass_rate"] = c["passed"] / c["tested"] if c["tested"] else None
@@ -92,6 +102,7 @@ def stats(path: str | Path) -> dict:
         "epsilon": dataset_io.quantiles(cat_all(eps)), "epsilon_pos_fraction": float((cat_all(eps) > 0).mean()) if eps else None,
         "E_g": dataset_io.quantiles(cat_all(E_g)), "E_c_cm": dataset_io.quantiles(cat_all(E_c) * 100),
         "physics": {"tested": tested, "passed_both": passed, "pass_rate": passed / tested if tested else None},
+        "labelled": labelled or None,
         "categories": dict(sorted(cat.items())),
         "diversity": {"resultant_median": float(np.median([o["resultant"] for o in div])) if div else None,
                       "cells_median": float(np.median([o["cells"] for o in div])) if div else None},
@@ -113,8 +124,15 @@ def format_stats(s: dict) -> str:
                      f"> 0 for {100 * s['epsilon_pos_fraction']:.1f} %")
         lines.append(f"  E_g median {f(s['E_g']['median'])}, E_c median {f(s['E_c_cm']['median'])} cm")
     p = s["physics"]
-    lines.append(f"  physics (six-dir and lift-shake) over tested candidates: {p['passed_both']} / {p['tested']}"
+    lines.append(f"  physics (six-dir and lift-shake; a labelled build: every protocol) over tested candidates: {p['passed_both']} / {p['tested']}"
                  f" = {f(p['pass_rate'] and 100 * p['pass_rate'], '{:.1f}')} %")
+    lab = s.get("labelled")
+    if lab and lab.get("candidates"):
+        n = lab["candidates"]
+        each = ", ".join(f"{k.removesuffix('_success')} {v} ({100 * v / n:.1f} %)" for k, v in lab.items()
+                         if k.endswith("_success"))
+        lines.append(f"  labelled candidates (record 0 of each object): {n}; passed {each}; all of them "
+                     f"{lab['all']} ({100 * lab['all'] / n:.1f} %)")
     d = s["diversity"]
     lines.append(f"  diversity per object (median): approach resultant {f(d['resultant_median'], '{:.2f}')}, "
                  f"{f(d['cells_median'], '{:.0f}')} of 20 direction cells")

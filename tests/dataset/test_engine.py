@@ -111,6 +111,20 @@ def test_every_candidate_is_written_with_its_labels(plain):
 
 
 
+def test_info_reports_the_labels(plain, capsys):
+    from ffcgs_jax.dataset import stats
+
+    s = stats.stats(plain)
+    recs = list(dataset_io.iter_records(plain))
+    lab = s["labelled"]
+    assert lab["candidates"] == N_OBJECTS * PER_OBJECT and lab["all"] == sum(int(r.holds().sum()) for r in recs)
+    for k in ("lift_shake_success", "six_dir_success", "dexgraspbench_success"):
+        assert lab[k] == sum(int(r.grasp_arrays()[k].sum()) for r in recs)
+    assert s["physics"] == {"tested": lab["candidates"], "passed_both": lab["all"],
+                            "pass_rate": lab["all"] / lab["candidates"]}
+    assert f"labelled candidates (record 0 of each object): {lab['candidates']}" in stats.format_stats(s)
+
+
 def test_export_carries_the_labels(plain, tmp_path):
     from ffcgs_jax.dataset import export
 
