@@ -63,8 +63,9 @@ def choose(cfg: DatasetConfig, n_objects: int) -> tuple[str, str | None]:
 def run(how: str, cfg: DatasetConfig, todo: list, parts_dir: Path, finished: Callable, bar=None,
         work: Callable | None = None) -> None:
     """Build every object of `todo` with `work(cfg, src, parts_dir, progress)` (`build.build_object`), calling
-    `finished(src, row)` as each one ends. Every object is tried; the first failure is raised after the others
-    ended, as one line naming its object (the finished objects are kept: rerunning the build resumes)."""
+    `finished(src, row)` as each one ends. Plain stops at the first failure; Ray tries every object and raises
+    the first failure after the others ended, as one line naming its object. Either way the finished objects are
+    kept, and rerunning the build resumes."""
     if how == "plain":
         for src in todo:
             if bar is not None:
