@@ -204,8 +204,8 @@ def build_object(cfg: DatasetConfig, src: Source, parts_dir: Path, progress=None
     two machines on one shared folder) gives the same files."""
     import jax
 
-    done = set(dataset_io.done_records(parts_dir))
-    todo = {r for r in range(cfg.rotations) if schema.record_id(src.name, r) not in done}
+    # this object's parts only: listing the folder per object would read every part of a build of thousands
+    todo = {r for r in range(cfg.rotations) if not dataset_io.part_done(parts_dir, schema.record_id(src.name, r))}
     if not todo:
         return None
     t0 = time.perf_counter()

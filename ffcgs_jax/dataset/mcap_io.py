@@ -230,6 +230,11 @@ def _reencoded(part: Path) -> bytes | None:
     return part_bytes(records[0]) if len(records) == 1 else None
 
 
+def part_done(parts_dir: str | Path, rid: str) -> bool:
+    """Whether record `rid` has a finished part in `parts_dir` (one file looked at, not the whole folder)."""
+    return _is_complete(Path(parts_dir) / (rid + PART_SUFFIX))
+
+
 def done_records(parts_dir: str | Path) -> list[str]:
     """Ids of the finished parts in `parts_dir`, sorted (temporary and truncated files are not finished)."""
     parts_dir = Path(parts_dir)
