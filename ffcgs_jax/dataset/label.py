@@ -23,7 +23,7 @@ import trimesh
 
 from ffcgs_jax.dataset.config import DatasetConfig
 from ffcgs_jax.dataset.objects import object_seed
-from ffcgs_jax.dataset.schema import LABEL_ARRAYS, PHYSICS_ARRAYS
+from ffcgs_jax.dataset.schema import LABEL_ARRAYS, PHYSICS_ARRAYS, holds
 
 GRASP_KEYS = ("wrist_pose", "q", "epsilon", "E", "E_g", "E_c")
 
@@ -61,8 +61,7 @@ def label(hand, spec, mesh: trimesh.Trimesh, cfg: DatasetConfig, name: str, grid
         if k in PHYSICS_ARRAYS or k in LABEL_ARRAYS:
             grasps[k] = np.asarray(v)
     grasps |= {k: np.asarray(gs[k]) for k in LABEL_ARRAYS if k in gs.arrays and k not in grasps}
-    success = [grasps[k] for k in grasps if k.endswith("_success")]
-    held = np.logical_and.reduce(success) if success else np.zeros(len(grasps["q"]), bool)
+    held = holds(grasps, len(grasps["q"]))  # every protocol asked for ran: at least one outcome each
     counts = {"candidates": len(grasps["q"]), "valid": int(np.sum(grasps["valid"])), "passed_all": int(held.sum())}
     counts |= {f"passed_{k.removesuffix('_success')}": int(np.sum(grasps[k])) for k in sorted(grasps)
                if k.endswith("_success")}

@@ -318,12 +318,17 @@ class Record:
     def holds(self) -> np.ndarray:
         """(G,) bool: the grasps that passed every protocol this record was labelled with (all, when none): the
         training set of the learned sampler is this filter over the records, successes only."""
-        out = np.ones(self.num_grasps, bool)
-        for k in SUCCESS_KEYS:
-            v = self.grasp_arrays().get(k)
-            if v is not None:
-                out &= v
-        return out
+        return holds(self.grasp_arrays(), self.num_grasps)
+
+
+def holds(arrays: dict[str, np.ndarray], n: int) -> np.ndarray:
+    """(n,) bool: the grasps of `arrays` (a record's grasp arrays) that passed every protocol they carry an outcome
+    of (`SUCCESS_KEYS`); all of them when they carry none."""
+    out = np.ones(n, bool)
+    for k in SUCCESS_KEYS:
+        if k in arrays:
+            out &= np.asarray(arrays[k], bool)
+    return out
 
 
 def encode_message(meta: dict, arrays: dict[str, np.ndarray]) -> bytes:
