@@ -126,6 +126,9 @@ def parser() -> Parser:
     ap.add_argument("--results", metavar="PATH", help="replace or append the quality block of this Markdown file")
     ap.add_argument("--report", metavar="JSON", help="no synthesis: print (and --results) the tables of a --json")
     ap.add_argument("--no-jax-cache", action="store_true", help="compile instead of loading from JAX's disk cache")
+    ap.add_argument("--save-grasps", metavar="DIR", help="also write each job's grasps, with the physics outcome of "
+                    "every tested grasp (`physics_<field>`, -1 / NaN / False where untested), to DIR/ROW/OBJECT.npz: "
+                    "what a ranking is fitted or judged on (`bench/rank_quality.py`)")
     return ap
 
 
@@ -217,7 +220,7 @@ def _opt(a: dict, key: str):
     return None if v is None else np.asarray(v).tolist()
 
 
-def run_job(hand, mesh, name: str, cfg: GraspConfig, args) -> dict:
+def run_job(hand, mesh, name: str, cfg: GraspConfig, args, save: Path | None = None) -> dict:
     from ffcgs_jax.physics import runner
     from ffcgs_jax.synthesis.grasp import synthesize
 
@@ -238,6 +241,8 @@ def run_job(hand, mesh, name: str, cfg: GraspConfig, args) -> dict:
                               squeeze_dir=gs["squeeze_dir"][tested])
         physics_s = time.perf_counter() - t1
         physics = {k: np.asarray(v).tolist() for k, v in res.items()}
+    if save is not None:
+        save_job(gs, tested, physics, save)
     return {
         "n": int(len(valid)), "valid": valid.tolist(), "order": order.tolist(), "tested": tested.tolist(),
         **{k: np.asarray(a[k], float).tolist() for k in ("E", "E_g", "E_c", "penetration", "epsilon")},
@@ -246,6 +251,22 @@ def run_job(hand, mesh, name: str, cfg: GraspConfig, args) -> dict:
         "physics": physics, "wall_s": wall, "synthesis_s": float(a["synthesis_s"]),
         "compile_s": float(a["compile_s"]), "physics_s": physics_s,
     }
+
+
+def save_job(gs, tested: np.ndarray, physics: dict, path: Path) -> None:
+    """`gs` as a grasp file plus `physics_<field>` per grasp (the tested ones filled) and `physics_tested`."""
+    from ffcgs_jax.synthesis import grasp_io
+
+    n = len(gs["valid"])
+    extra = {"physics_tested": np.isin(np.arange(n), tested)}
+    for k, v in physics.items():
+        v = np.asarray(v)
+        full = np.full((n, *v.shape[1:]), False if v.dtype == bool else -1 if v.dtype.kind in "iu" else np.nan,
+                       v.dtype if v.dtype.kind in "biu" else np.float64)
+        full[tested] = v
+        extra[f"physics_{k}"] = full
+    path.parent.mkdir(parents=True, exist_ok=True)
+    grasp_io.save_npz(type(gs)({**gs.arrays, **extra}, {}, gs.config, gs.object_name), path)
 
 
 def machine() -> dict:
@@ -295,7 +316,8 @@ def run(args) -> dict:
     bar = tqdm(jobs, desc="quality", unit="job", file=sys.stderr)
     for (group, name, mesh), (label, cfg) in bar:
         bar.set_postfix_str(f"{name} / {label}")
-        rec = run_job(hand, mesh, name, cfg, args)
+        save = Path(args.save_grasps) / label.replace(":", "_") / f"{name}.npz" if args.save_grasps else None
+        rec = run_job(hand, mesh, name, cfg, args, save)
         rec = {"object": name, "group": group, "row": label, "sampler": cfg.sampler, "warm": label in seen, **rec}
         seen.add(label)
         records.append(rec)

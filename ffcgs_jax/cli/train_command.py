@@ -1,7 +1,10 @@
-"""Train the CVAE wrist-pose sampler on a dataset from `ffcgs dataset build`.
+"""Train the package's networks on a dataset from `ffcgs dataset build`: the CVAE wrist-pose sampler (the default,
+`--model sampler`) or the grasp-success predictor (`--model evaluator`, on a labelled build: `--keep all`).
 
     ffcgs train --config configs/sampler.toml [--optim.lr 3e-4 ...] [--cv.all]
     ffcgs train --config configs/sampler.toml --sweep optim.lr=1e-4,3e-4 model.width=8,16
+    ffcgs train --model evaluator --data.path labels.mcap --cv.all --out runs/evaluator
+    ffcgs train --model evaluator --data.path labels.mcap --sweep optim.weight_decay=0.3,1,3 --cv.fold 0
 
 Any config field is a flag (`--help` lists them). `--cv.all` runs every cross-validation fold and writes
 OUT/cv.md; `--sweep` runs the grid of the listed values (each run in OUT/sweep/<name>/, sequentially) and writes
@@ -22,10 +25,33 @@ import numpy as np
 from ffcgs_jax import files
 from ffcgs_jax.config import coerce, check_all, split_config_arg, with_overrides
 from ffcgs_jax.errors import FfcgsError
-from ffcgs_jax.learning.config import TrainConfig
+from ffcgs_jax.learning.config import EvaluatorTrainConfig, TrainConfig
+
+MODELS = {"sampler": TrainConfig, "evaluator": EvaluatorTrainConfig}
 
 # The training code imports JAX: `learning.data` and `learning.train` are imported where they run, so that
 # `ffcgs --help` (which names this command) stays quick.
+
+
+def split_model(argv: list[str]) -> tuple[str, list[str]]:
+    """(the model `--model NAME` or `--model=NAME` names, "sampler" without one; the other arguments).
+    `--model.res ...` (the sampler's network section) is not this flag."""
+    model, rest, i = "sampler", [], 0
+    while i < len(argv):
+        a = argv[i]
+        if a == "--model" or a.startswith("--model="):
+            if a == "--model":
+                if i + 1 >= len(argv) or argv[i + 1].startswith("--"):
+                    raise FfcgsError(f"--model needs a name: {', '.join(MODELS)}")
+                model, i = argv[i + 1], i + 2
+            else:
+                model, i = a.split("=", 1)[1], i + 1
+            if model not in MODELS:
+                raise FfcgsError(f"unknown --model {model!r}; models: {', '.join(MODELS)}")
+            continue
+        rest.append(a)
+        i += 1
+    return model, rest
 
 
 def split_args(argv: list[str]) -> tuple[str | None, list[str], list[str]]:
@@ -88,9 +114,31 @@ def replace(cfg, dotted: str, value):
     return dataclasses.replace(cfg, **{head: replace(getattr(cfg, head), rest, value)})
 
 
+def run_cv_evaluator(cfg: EvaluatorTrainConfig) -> dict:
+    """Every fold of the predictor's cross-validation in OUT/fold<k>/, then OUT/cv.md; the mean summary."""
+    from ffcgs_jax.hand import kinematics as K
+    from ffcgs_jax.learning import evaluator_data, evaluator_train
+    from ffcgs_jax.learning.train import dataset_hand
+
+    data = evaluator_data.load(cfg.data.path, K.load_hand(dataset_hand(cfg.data.path, cfg.hand)))
+    rows = []
+    for k in range(cfg.cv.folds):
+        sub = replace(replace(cfg, "cv.fold", k), "out", str(Path(cfg.out) / f"fold{k}"))
+        t0 = time.perf_counter()
+        rows.append(evaluator_train.train(sub, data=data) | {"fold": k, "time_s": time.perf_counter() - t0})
+    text = evaluator_train.cv_table(rows)
+    files.write_text(Path(cfg.out) / "cv.md", text + "\n")
+    print(text)
+    keys = [k for k in rows[0] if k.startswith("val_") and isinstance(rows[0][k], float)]
+    return {k: float(np.nanmean([r[k] for r in rows])) for k in keys} | {"time_s": sum(r["time_s"] for r in rows)}
+
+
 def run_cv(cfg: TrainConfig) -> dict:
     """Every fold of cfg.cv in OUT/fold<k>/, then OUT/cv.md; returns the mean summary."""
     from ffcgs_jax.learning import data as cvae_data
+
+    if isinstance(cfg, EvaluatorTrainConfig):
+        return run_cv_evaluator(cfg)
     from ffcgs_jax.learning.train import train
 
     rows = []
@@ -113,11 +161,13 @@ def run_cv(cfg: TrainConfig) -> dict:
             "val_kl": float(np.mean([r["val_kl"] for r in rows])), "time_s": sum(r["time_s"] for r in rows)}
 
 
-def run_one(cfg: TrainConfig) -> dict:
-    from ffcgs_jax.learning.train import train
-
+def run_one(cfg: TrainConfig | EvaluatorTrainConfig) -> dict:
     if cfg.cv.all:
         return run_cv(cfg)
+    if isinstance(cfg, EvaluatorTrainConfig):
+        from ffcgs_jax.learning.evaluator_train import train
+    else:
+        from ffcgs_jax.learning.train import train
     t0 = time.perf_counter()
     return train(cfg) | {"time_s": time.perf_counter() - t0}
 
@@ -132,11 +182,17 @@ def run_sweep(cfg: TrainConfig, grid: list[tuple[str, list]]) -> list[dict]:
             sub = replace(sub, k, v)
         check_all(sub)
         rows.append({"name": name, "values": values} | run_one(sub))
-    fmt = lambda v: "-" if v is None else f"{100 * v:.2f}"  # noqa: E731
-    lines = ["| " + " | ".join(keys) + " | train rec (cm) | val rec (cm) | val KL | time (s) |",
-             "|" + "---|" * (len(keys) + 4)]
-    lines += ["| " + " | ".join(str(v) for v in r["values"]) + f" | {fmt(r['train_rec'])} | {fmt(r['val_rec'])} | "
-              f"{'-' if r['val_kl'] is None else format(r['val_kl'], '.2f')} | {r['time_s']:.0f} |" for r in rows]
+    if isinstance(cfg, EvaluatorTrainConfig):
+        from ffcgs_jax.learning.evaluator_train import summary_columns
+
+        names, cells = summary_columns()
+    else:
+        fmt = lambda v: "-" if v is None else f"{100 * v:.2f}"  # noqa: E731
+        names = ["train rec (cm)", "val rec (cm)", "val KL", "time (s)"]
+        cells = lambda r: [fmt(r["train_rec"]), fmt(r["val_rec"]),  # noqa: E731
+                           "-" if r["val_kl"] is None else format(r["val_kl"], ".2f"), f"{r['time_s']:.0f}"]
+    lines = ["| " + " | ".join(keys + names) + " |", "|" + "---|" * (len(keys) + len(names))]
+    lines += ["| " + " | ".join([str(v) for v in r["values"]] + cells(r)) + " |" for r in rows]
     Path(cfg.out).mkdir(parents=True, exist_ok=True)
     files.write_text(Path(cfg.out) / "sweep.md", "\n".join(lines) + "\n")
     files.write_text(Path(cfg.out) / "sweep.json", json.dumps(rows, indent=1, default=str))
@@ -149,8 +205,9 @@ def main(argv: list[str] | None = None, prog: str = "ffcgs train", name: str = "
     `python -m train.sampler` both land here and differ only in `prog` (help's usage line) and `name`."""
     argv = sys.argv[1:] if argv is None else argv
     try:
+        model, argv = split_model(argv)
         path, specs, rest = split_args(argv)
-        cfg = with_overrides(TrainConfig, rest if path is None else ["--config", path, *rest], prog,
+        cfg = with_overrides(MODELS[model], rest if path is None else ["--config", path, *rest], prog,
                              keep_prefixes=True, description=__doc__)
         if specs:
             run_sweep(cfg, parse_sweep(cfg, specs))

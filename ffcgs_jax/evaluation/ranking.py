@@ -1,9 +1,10 @@
 """The one order in which grasps are offered: the order of `GraspSet.order`, the viewer, pictures and logs.
 
 Grasps that passed every physics protocol they were checked with (`physics_passed`, written by
-`physics.validate.validate`) come first, then valid grasps, then the rest; within each group by increasing E (the
-analytic order: within one object E ranked physics outcomes better than `score` on the training objects,
-bench/RESULTS.md "Grasp quality"), ties by index, so the same grasps always give the same order.
+`physics.validate.validate`) come first, then valid grasps, then the rest; within each group by decreasing
+predicted success (`pred_success`, the learned predictor of `synthesis.prediction`) when the arrays were ranked
+"predicted" (`rank_by`), else by increasing E (the analytic order); ties by index, so the same grasps always give
+the same order. Arrays without `rank_by` (files from before the predictor) rank by E.
 """
 
 import numpy as np
@@ -16,4 +17,11 @@ def ranked(arrays: dict) -> np.ndarray:
     valid = np.asarray(arrays.get("valid", np.ones(n, bool)), bool)
     E = np.asarray(arrays.get("E", np.zeros(n)), float)
     passed = np.asarray(arrays.get("physics_passed", np.zeros(n, bool)), bool)
-    return np.lexsort((np.arange(n), E, ~valid, ~passed))
+    key = -np.asarray(arrays["pred_success"], float) if rank_by(arrays) == "predicted" else E
+    return np.lexsort((np.arange(n), key, ~valid, ~passed))
+
+
+def rank_by(arrays: dict) -> str:
+    """"predicted" or "energy": how these arrays are ranked (`rank_by` as written, "energy" without predictions)."""
+    how = str(arrays.get("rank_by", "energy"))
+    return "predicted" if how == "predicted" and "pred_success" in arrays else "energy"

@@ -205,3 +205,91 @@ def to_toml(cfg: Any) -> str:
             text += f"\n[{name}]\n" + "\n".join(rows) + "\n"
     return text
 
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# The success predictor (`learning.evaluator`): `ffcgs train --model evaluator`
+# ----------------------------------------------------------------------------------------------------------------
+
+
+@dataclasses.dataclass(frozen=True)
+class EvaluatorNetConfig:
+    """The predictor's MLP: `depth` hidden layers of `hidden` units (the features are `evaluator.features`)."""
+
+    hidden: int = 256
+    depth: int = 3
+
+    def check(self) -> None:
+        check_integer("net.hidden", self.hidden, 1, 8192)
+        check_integer("net.depth", self.depth, 1, 32)
+
+
+@dataclasses.dataclass(frozen=True)
+class EvaluatorOptimConfig:
+    """Adam on the mean binary cross-entropy of every head.
+
+    Attributes:
+        lr: Adam step size, cosine-decayed to 0 over the run.
+        b1, b2, eps: Adam's moment decay rates and denominator guard.
+        batch: grasps per step.
+        epochs: passes over the training grasps.
+        weight_decay: decoupled L2 shrinkage per step, times lr (AdamW); 0 turns it off. Strong (1) by default:
+            a network that fits its training objects perfectly ranks unseen ones worse (bench/RESULTS.md).
+    """
+
+    lr: float = 1e-3
+    b1: float = 0.9
+    b2: float = 0.999
+    eps: float = 1e-8
+    batch: int = 256
+    epochs: int = 30
+    weight_decay: float = 1.0
+
+    def check(self) -> None:
+        if not (is_finite(self.lr) and 0 < self.lr <= 1):
+            raise FfcgsError(f"optim.lr must be in (0, 1], got {self.lr!r}")
+        for name in ("b1", "b2"):
+            v = getattr(self, name)
+            if not (is_finite(v) and 0 <= v < 1):
+                raise FfcgsError(f"optim.{name} must be in [0, 1), got {v!r}")
+        if not (is_finite(self.eps) and 0 < self.eps <= 1):
+            raise FfcgsError(f"optim.eps must be in (0, 1], got {self.eps!r}")
+        check_integer("optim.batch", self.batch, 1, 1 << 20)
+        check_integer("optim.epochs", self.epochs, 1, 100_000)
+        if not (is_finite(self.weight_decay) and 0 <= self.weight_decay and self.lr * self.weight_decay < 1):
+            raise FfcgsError(f"optim.weight_decay must be >= 0 with optim.lr * optim.weight_decay < 1 (each step "
+                             f"shrinks the weights by that factor), got {self.weight_decay!r}")
+
+
+@dataclasses.dataclass(frozen=True)
+class EvaluatorDataConfig:
+    """path: a labelled dataset file (`ffcgs dataset build --keep all`), training objects only."""
+
+    path: str = "data/labels.mcap"
+
+    def check(self) -> None:
+        if not isinstance(self.path, str) or not self.path:
+            raise FfcgsError("data.path must name a labelled dataset file (.mcap)")
+
+
+@dataclasses.dataclass(frozen=True)
+class EvaluatorTrainConfig:
+    """`ffcgs train --model evaluator`: one training run of the success predictor.
+
+    Attributes:
+        out: output folder: config.toml, metrics.jsonl, metrics.png, checkpoint.npz, weights.npz, summary.json.
+        hand: the hand (built-in name or hand-spec TOML); "" = the dataset's.
+        seed: seeds the initial parameters and the batch order.
+        cv: as the sampler's: folds by object, `fold` held out (-1: train on every object), `all`: every fold.
+    """
+
+    out: str = "runs/evaluator"
+    hand: str = ""
+    seed: int = 0
+    net: EvaluatorNetConfig = EvaluatorNetConfig()
+    optim: EvaluatorOptimConfig = EvaluatorOptimConfig()
+    data: EvaluatorDataConfig = EvaluatorDataConfig()
+    cv: CVConfig = CVConfig()
+
+    def check(self) -> None:
+        check_integer("seed", self.seed, 0, 2**31 - 1)

@@ -154,7 +154,7 @@ def weights_meta(cfg: TrainConfig, hand: str, extra: dict) -> dict:
             "train": {"config": to_toml(cfg)} | extra}
 
 
-def _check_run_folder(out: Path, cfg_path: Path, ckpt_path: Path, text: str) -> None:
+def check_run_folder(out: Path, cfg_path: Path, ckpt_path: Path, text: str) -> None:
     """`out` may be new, empty, or this configuration's run (resumed); a file, another configuration's run, or a
     folder of other files is refused before anything is written."""
     if out.exists() and not out.is_dir():
@@ -184,7 +184,7 @@ def train(cfg: TrainConfig, hand: str | None = None, progress: bool = True, unti
     out = Path(cfg.out).expanduser()
     text = to_toml(cfg)
     cfg_path, ckpt_path, log_path = out / "config.toml", out / "checkpoint.npz", out / "metrics.jsonl"
-    _check_run_folder(out, cfg_path, ckpt_path, text)
+    check_run_folder(out, cfg_path, ckpt_path, text)
     # Everything that can refuse the run comes before its first write: a failed start leaves an existing run (and
     # a new --out) exactly as it was.
     if data is None:
@@ -208,7 +208,7 @@ def train(cfg: TrainConfig, hand: str | None = None, progress: bool = True, unti
         params, opt = tree["params"], AdamState(tree["opt"]["count"], tree["opt"]["mu"], tree["opt"]["nu"])
         params, opt = jax.tree.map(jnp.asarray, (params, opt))
         start_epoch = int(meta["epoch"])
-        _truncate_log(log_path, start_epoch * steps_per_epoch)
+        truncate_log(log_path, start_epoch * steps_per_epoch)
     elif log_path.exists():
         log_path.unlink()
 
@@ -275,7 +275,7 @@ def train(cfg: TrainConfig, hand: str | None = None, progress: bool = True, unti
     return summary
 
 
-def _truncate_log(path: Path, step: int) -> None:
+def truncate_log(path: Path, step: int) -> None:
     """Drop log lines past `step` (written after the checkpoint a resumed run restarts from)."""
     if not path.exists():
         return

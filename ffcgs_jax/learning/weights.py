@@ -1,11 +1,12 @@
-"""The CVAE's weights files: the ones shipped in the package per hand, and loading any `weights.npz` that
-`python -m train.sampler` wrote (`learning.train`)."""
+"""Weights files of the package's networks: the CVAE's and the success predictor's, the ones shipped per hand, and
+loading any `weights.npz` that `ffcgs train` wrote (`learning.train`, `learning.evaluator_train`), checked."""
 
 from importlib import resources
 from pathlib import Path
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from ffcgs_jax.config import from_dict
 from ffcgs_jax.errors import FfcgsError
@@ -39,3 +40,49 @@ def load_weights(path: str | Path, hand: str | None = None) -> tuple[dict, Model
         raise FfcgsError(f"{path}: its parameters do not fit its model config (array names, shapes or dtypes differ "
                          "from what learning.cvae.init makes for it)")
     return jax.tree.map(jnp.asarray, got), model
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# The success predictor's weights (`learning.evaluator`, trained by `ffcgs train --model evaluator`)
+# ----------------------------------------------------------------------------------------------------------------
+
+EVALUATOR_FORMAT = "ffcgs.evaluator.v1"
+
+
+def shipped_evaluator(hand_name: str) -> Path:
+    """Where the package keeps the success predictor trained for hand `hand_name` (the file may not exist)."""
+    return Path(str(resources.files("ffcgs_jax.learning") / "assets" / "weights" / f"evaluator_{hand_name}.npz"))
+
+
+def load_evaluator(path: str | Path, hand) -> tuple[dict, dict]:
+    """({"net", "norm"} as jax arrays, metadata) of a predictor weights file, checked against `hand` (a
+    `kinematics.Hand`): format, hand, feature version and width, and every array's shape. One line otherwise."""
+    from ffcgs_jax.learning import evaluator
+
+    tree, meta = checkpoint.load(path)
+    if meta.get("format") != EVALUATOR_FORMAT:
+        raise FfcgsError(f"{path} is not a success-predictor weights file (format {meta.get('format')!r}, want "
+                         f"{EVALUATOR_FORMAT})")
+    if meta.get("hand") != hand.spec.name:
+        raise FfcgsError(f"{path} was trained for hand {meta.get('hand')!r}, not {hand.spec.name!r}")
+    if meta.get("feature_version") != evaluator.FEATURE_VERSION:
+        raise FfcgsError(f"{path} was trained on predictor features v{meta.get('feature_version')}, this version "
+                         f"computes v{evaluator.FEATURE_VERSION}: train it again")
+    width = evaluator.feature_width(hand)
+    heads = meta.get("heads")
+    net_cfg = meta.get("net") or {}
+    try:
+        hidden, depth = int(net_cfg["hidden"]), int(net_cfg["depth"])
+        want = jax.eval_shape(lambda k: evaluator.init(k, width, len(heads), hidden, depth), jax.random.key(0))
+    except (KeyError, TypeError, ValueError):
+        raise FfcgsError(f"{path}: its metadata lacks the network's heads or shape (net.hidden, net.depth)") from None
+    layout = lambda t: jax.tree.map(lambda a: (tuple(a.shape), a.dtype.kind), t)  # noqa: E731
+    norm_want = {"mean": ((width,), "f"), "scale": ((width,), "f")}
+    got_net, got_norm = tree.get("net"), tree.get("norm")
+    if not isinstance(got_net, dict) or not isinstance(got_norm, dict) or layout(got_net) != layout(want) \
+            or layout(got_norm) != norm_want:
+        raise FfcgsError(f"{path}: its arrays do not fit its metadata (names, shapes or dtypes differ from a "
+                         f"{depth} x {hidden} network over {width} features)")
+    if not all(np.isfinite(a).all() for a in jax.tree.leaves((got_net, got_norm))):
+        raise FfcgsError(f"{path}: its weights contain NaN or inf")
+    return jax.tree.map(jnp.asarray, {"net": got_net, "norm": got_norm}), meta

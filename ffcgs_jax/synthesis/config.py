@@ -155,6 +155,7 @@ class FilterConfig:
 
 
 SAMPLERS = ("cvae", "geometric", "random")  # the names `samplers.CORES` implements
+RANKS = ("auto", "predicted", "energy")  # GraspConfig.rank: `synthesis.prediction.resolve`
 
 
 @dataclasses.dataclass(frozen=True)
@@ -226,6 +227,12 @@ class GraspConfig:
         devices: local accelerators the batch of poses is split over (`jax.sharding`, each device optimises its
             share independently): 0 = all local devices of JAX's default backend, k = the first k. The results
             do not depend on it; a batch that does not divide evenly is padded.
+        rank: the order grasps are offered in (`GraspSet.order`): "auto" (the default) by the learned success
+            predictor's `pred_success` where one exists for the hand (shipped for the SVH, or `evaluator`), else by
+            E; "predicted" requires a predictor; "energy" by E, the analytic order (predictions still stored).
+            On held-out objects the predicted order puts a grasp that holds first far more often than E
+            (bench/RESULTS.md, "Success predictor").
+        evaluator: a success-predictor weights file (`ffcgs train --model evaluator`); "" = the shipped one.
     """
 
     n: int = 32
@@ -241,9 +248,15 @@ class GraspConfig:
     optim: OptimConfig = OptimConfig()
     filters: FilterConfig = FilterConfig()
     sampling: SamplerConfig = SamplerConfig()
+    rank: str = "auto"
+    evaluator: str = ""
 
     def check(self) -> None:
         check_integer("n", self.n, 1, 1_000_000)
+        if self.rank not in RANKS:
+            raise FfcgsError(f"rank must be one of {', '.join(RANKS)}, got {self.rank!r}")
+        if not isinstance(self.evaluator, str):
+            raise FfcgsError(f"evaluator must be a file path (or \"\" for the shipped weights), got {self.evaluator!r}")
         if self.sampler not in ("auto", *SAMPLERS):
             raise FfcgsError(f"unknown sampler {self.sampler!r}; samplers: auto, {', '.join(SAMPLERS)}")
         if not 0 <= self.max_penetration <= 1:

@@ -32,7 +32,7 @@ from ffcgs_jax.hand import kinematics as K
 from ffcgs_jax.hand.kinematics import Hand
 from ffcgs_jax.hand.sites import palm_centre_root
 from ffcgs_jax.runtime import COMPILED_MAX, compile_clock, traced_store
-from ffcgs_jax.synthesis import fetch, grasp_io, memory, samplers, sharding
+from ffcgs_jax.synthesis import fetch, grasp_io, memory, prediction, samplers, sharding
 from ffcgs_jax.synthesis import filters as F
 from ffcgs_jax.synthesis.config import EnergyConfig, GraspConfig, OptimConfig
 from ffcgs_jax.synthesis.energy import Target, Terms, chosen, fingertip_contacts, make_target
@@ -175,11 +175,9 @@ class GraspSet:
 
     def order(self) -> np.ndarray:
         """Grasp indices in the offered order (`evaluation.ranking.ranked`): those that passed the physics check
-        first when it ran (`physics.validate`), then valid ones, each group by increasing E, ties by index: the same
-        grasps give the same order. Not by `score`: within one object, E ranked physics outcomes better on the YCB
-        training objects (`bench/fit_score.py`: top-1 40.0 % against 37.1 % leave-one-object-out;
-        bench/RESULTS.md, "Grasp quality"); `score` is the calibrated chance of passing, for comparing grasps across
-        objects and for thresholds."""
+        first when it ran (`physics.validate`), then valid ones, each group by decreasing predicted success
+        (`pred_success`, `GraspConfig.rank` "auto" or "predicted") or by increasing E ("energy", or no predictor
+        for the hand), ties by index: the same grasps give the same order."""
         return ranking.ranked(self.arrays)
 
 
@@ -356,6 +354,10 @@ def finish(hand, target, cfg, out: DeviceOut, evaluate, synthesis_s, object_name
         "synthesis_s": np.asarray(synthesis_s, np.float64),
     }
     arrays["score"] = score.score(arrays)
+    rank, predictor = prediction.resolve(cfg.rank, hand, cfg.evaluator)
+    if predictor is not None:
+        arrays |= prediction.predictions(*predictor, hand, target.sdf, arrays)
+    arrays["rank_by"] = np.array(rank)
     arrays["evaluation_s"] = np.asarray(time.perf_counter() - t0 - packing[0], np.float64)  # the copy included
     trace = {k: np.asarray(getattr(opt.trace, k), np.float64) for k in ("E", "E_g", "E_c")}
     return GraspSet(arrays, trace, cfg, object_name)
@@ -402,6 +404,11 @@ def summary_rows(gs: GraspSet) -> list[tuple[str, str]]:
         ("median E_c (cm)", med("E_c", 100)),
         ("median epsilon", med("epsilon")),
         ("median penetration (mm)", med("penetration", 1000)),
+        *([("predicted success: first grasp / median valid", f"{float(gs['pred_success'][gs.order()[0]]):.2f} / "
+                                                              f"{med('pred_success')}")]
+          if "pred_success" in gs.arrays and len(v) else []),
+        ("ranked by", "predicted success (--rank energy: E)" if ranking.rank_by(gs.arrays) == "predicted"
+         else "E, the analytic order"),
         ("synthesis time (s)", f"{float(gs['synthesis_s']):.3f}"),
         *([("whole call (s)", f"{float(gs['total_s']):.3f} (SDF {float(gs['sdf_s']):.3f}, device "
                               f"{float(gs['synthesis_s']):.3f}, evaluation {float(gs['evaluation_s']):.3f})")]

@@ -28,9 +28,10 @@ def load_npz(path: str | Path) -> dict[str, np.ndarray]:
     return check_arrays(files.read_npz(path, "grasp file", "grasp .npz"), path)
 
 
-_ROWS = {"wrist_pose": (None, 4, 4), "q": (None, None), "valid": (None,), "squeeze_dir": (None, None)}
+_ROWS = {"wrist_pose": (None, 4, 4), "q": (None, None), "valid": (None,), "squeeze_dir": (None, None),
+         "pred_success": (None,)}
 """Per-grasp arrays the commands read, one row per grasp, and their shapes (None: any length)."""
-_TEXT = ("object_source", "object_name", "object_sha256", "config_json")
+_TEXT = ("object_source", "object_name", "object_sha256", "config_json", "rank_by")
 """Fields that hold one string."""
 
 

@@ -1,0 +1,67 @@
+"""The success predictor in the synthesis call: which weights a config asks for, and the per-grasp predictions
+`finish` adds to a GraspSet (`pred_success` and one `pred_<protocol>` per head), on the device that holds the SDF.
+
+`GraspConfig.rank` decides the order (`evaluation.ranking`): "auto" ranks by `pred_success` where a predictor
+exists for the hand (shipped, or `GraspConfig.evaluator`), else by E; "predicted" requires one; "energy" ranks by
+E (the predictions are still computed and stored when a predictor exists). The choice rides in the arrays as
+`rank_by`, so a grasp file is ranked later as it was when written.
+"""
+
+from pathlib import Path
+
+import jax.numpy as jnp
+import numpy as np
+
+from ffcgs_jax.errors import FfcgsError
+from ffcgs_jax.learning import evaluator
+from ffcgs_jax.learning.weights import load_evaluator, shipped_evaluator
+from ffcgs_jax.synthesis.config import RANKS
+
+
+_LOADED: dict = {}
+
+
+def _load(path: str, hand) -> tuple[dict, dict]:
+    """Loaded once per file version and hand: a synthesis call must not re-read weights."""
+    key = (path, Path(path).stat().st_mtime_ns, hand.spec)
+    if key not in _LOADED:
+        _LOADED.clear() if len(_LOADED) > 8 else None
+        _LOADED[key] = load_evaluator(path, hand)
+    return _LOADED[key]
+
+
+def weights_for(hand, path: str = "") -> tuple[dict, dict] | None:
+    """(weights, metadata) of the predictor `path` names, or the one shipped for `hand` when `path` is ""; None
+    when none ships for the hand. A file that is named but missing or wrong is one line (FfcgsError)."""
+    if path:
+        if not Path(path).expanduser().is_file():
+            raise FfcgsError(f"evaluator weights not found: {path}")
+        return _load(str(Path(path).expanduser()), hand)
+    shipped = shipped_evaluator(hand.spec.name)
+    return _load(str(shipped), hand) if shipped.is_file() else None
+
+
+def resolve(rank: str, hand, path: str = "") -> tuple[str, tuple[dict, dict] | None]:
+    """(the order used, "predicted" or "energy"; the predictor or None)."""
+    if rank not in RANKS:
+        raise FfcgsError(f"rank must be one of {', '.join(RANKS)}, got {rank!r}")
+    found = weights_for(hand, path)
+    if rank == "predicted" and found is None:
+        raise FfcgsError(f"rank 'predicted' needs a success predictor, and none ships for hand {hand.spec.name}; "
+                         "train one (`ffcgs train --model evaluator`) and pass it with --evaluator, or rank by "
+                         "energy")
+    return ("energy" if rank == "energy" or found is None else "predicted"), found
+
+
+def predictions(weights: dict, meta: dict, hand, sdf, arrays: dict) -> dict[str, np.ndarray]:
+    """{"pred_success": (G,), "pred_<head>": (G,) per protocol head} of a grasp set's host arrays on `sdf`."""
+    n = len(arrays["q"])
+    heads = list(meta["heads"])
+    if n == 0:
+        return {"pred_success": np.zeros(0)} | {f"pred_{h}": np.zeros(0) for h in heads[:-1]}
+    dt = sdf.grid.dtype
+    inputs = evaluator.grasp_inputs(arrays, len(hand.spec.contact_sites))
+    p = evaluator.predict(weights, hand, sdf, jnp.asarray(arrays["wrist_pose"], dt), jnp.asarray(arrays["q"], dt),
+                          jnp.asarray(arrays["contacts"], dt), jnp.asarray(inputs, dt))
+    p = np.asarray(p, np.float64)
+    return {"pred_success": p[:, -1]} | {f"pred_{h}": p[:, i] for i, h in enumerate(heads[:-1])}

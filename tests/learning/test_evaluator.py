@@ -1,0 +1,336 @@
+"""The success predictor: network against NumPy, gradients against finite differences, features batched against
+single, training on a known rule, folds by object, resumption, the labelled-file path through `ffcgs train
+--model evaluator`, the shipped weights' use in ranking, and bad weights files (one line each)."""
+
+import dataclasses
+import hashlib
+import json
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from ffcgs_jax.cli import train_command
+from ffcgs_jax.dataset import mcap_io as dio
+from ffcgs_jax.dataset import schema
+from ffcgs_jax.errors import FfcgsError
+from ffcgs_jax.evaluation import rank_metrics, ranking
+from ffcgs_jax.geometry import mesh_io
+from ffcgs_jax.geometry import sdf as sdf_mod
+from ffcgs_jax.geometry.config import SDFConfig
+from ffcgs_jax.hand import kinematics as K
+from ffcgs_jax.learning import checkpoint, evaluator, evaluator_data, evaluator_train
+from ffcgs_jax.learning.config import (CVConfig, EvaluatorDataConfig, EvaluatorNetConfig, EvaluatorOptimConfig,
+                                       EvaluatorTrainConfig)
+from ffcgs_jax.learning.weights import EVALUATOR_FORMAT, load_evaluator, shipped_evaluator
+from ffcgs_jax.synthesis import prediction
+
+
+@pytest.fixture(scope="module")
+def svh():
+    return K.load_hand("svh")
+
+
+@pytest.fixture(scope="module")
+def box_sdf():
+    return sdf_mod.build_sdf(mesh_io.load_mesh("box"), SDFConfig(res=16))
+
+
+_contacts = jax.jit(jax.vmap(K.contact_points, (None, 0, 0)))
+
+
+def grasps(hand, g: int, seed: int) -> dict:
+    """Random grasp arrays around the box (poses, channels within limits, their fingertip points, metrics)."""
+    rng = np.random.default_rng(seed)
+    poses = np.zeros((g, 4, 4))
+    for i in range(g):
+        qm, r = np.linalg.qr(rng.normal(size=(3, 3)))
+        qm = qm * np.sign(np.diag(r))
+        qm[:, 2] *= np.sign(np.linalg.det(qm))
+        poses[i, :3, :3] = qm
+        poses[i, :3, 3] = rng.normal(0, 0.05, 3) + [0, 0, 0.05]
+        poses[i, 3, 3] = 1
+    lo, hi = np.asarray(hand.lower), np.asarray(hand.upper)
+    q = lo + rng.uniform(size=(g, len(lo))) * (hi - lo)
+    contacts = np.asarray(_contacts(hand, jnp.asarray(poses), jnp.asarray(q)))
+    c = contacts.shape[1]
+    a = {"wrist_pose": poses, "q": q, "contacts": contacts, "contact_dist": rng.normal(0, 0.003, (g, c)),
+         "squeeze_dir": rng.normal(size=q.shape), "n_contacts": rng.integers(0, c + 1, g),
+         "valid": rng.uniform(size=g) < 0.7, "force_closure": rng.uniform(size=g) < 0.5}
+    for k in evaluator.METRICS:
+        a[k] = np.abs(rng.normal(0, evaluator.METRICS[k], g))
+    return a
+
+
+def numpy_logits(net: dict, norm: dict, x: np.ndarray) -> np.ndarray:
+    h = (x - np.asarray(norm["mean"])) / np.asarray(norm["scale"])
+    for i in range(len(net) - 1):
+        z = h @ np.asarray(net[f"l{i}"]["w"]) + np.asarray(net[f"l{i}"]["b"])
+        h = z / (1 + np.exp(-z))
+    return h @ np.asarray(net["head"]["w"]) + np.asarray(net["head"]["b"])
+
+
+def random_net(n_in=7, n_out=3, hidden=16, depth=2, seed=0):
+    net = evaluator.init(jax.random.key(seed), n_in, n_out, hidden, depth)
+    net = jax.tree.map(lambda a: a + 0.1 * jax.random.normal(jax.random.key(seed + 1), a.shape), net)
+    rng = np.random.default_rng(seed)
+    norm = {"mean": rng.normal(size=n_in), "scale": rng.uniform(0.5, 2, n_in)}
+    return net, norm
+
+
+def test_forward_pass_matches_numpy_float64():
+    net, norm = random_net()
+    x = np.random.default_rng(3).normal(size=(11, 7))
+    got = np.asarray(evaluator.logits(net, jax.tree.map(jnp.asarray, norm), jnp.asarray(x)))
+    np.testing.assert_allclose(got, numpy_logits(net, norm, x), rtol=1e-12, atol=1e-12)
+
+
+def test_gradient_matches_finite_differences():
+    net, norm = random_net()
+    norm = jax.tree.map(jnp.asarray, norm)
+    rng = np.random.default_rng(4)
+    x, y = jnp.asarray(rng.normal(size=(9, 7))), jnp.asarray((rng.uniform(size=(9, 3)) < 0.5).astype(float))
+    grads = jax.grad(evaluator_train.loss_fn)(net, norm, x, y)
+    h = 1e-6
+    for path in (("l0", "w", (2, 5)), ("l1", "b", (3,)), ("head", "w", (4, 1))):
+        layer, leaf, idx = path
+
+        def at(delta):
+            moved = jax.tree.map(lambda a: a, net)
+            moved[layer] = dict(moved[layer])
+            moved[layer][leaf] = moved[layer][leaf].at[idx].add(delta)
+            return float(evaluator_train.loss_fn(moved, norm, x, y))
+
+        fd = (at(h) - at(-h)) / (2 * h)
+        assert abs(float(grads[layer][leaf][idx]) - fd) < 1e-7 * max(1.0, abs(fd)), path
+
+
+def test_features_have_the_documented_width_and_layout(svh, box_sdf):
+    a = grasps(svh, 5, seed=1)
+    inputs = evaluator.grasp_inputs(a, 5)
+    assert inputs.shape == (5, evaluator.input_width(svh))
+    args = [jnp.asarray(a[k]) for k in ("wrist_pose", "q", "contacts")] + [jnp.asarray(inputs)]
+    batched = np.asarray(evaluator.batch_features_jit(svh, box_sdf, *args))
+    assert batched.shape == (5, evaluator.feature_width(svh)) and np.isfinite(batched).all()
+    res = box_sdf.grid.shape[0]
+    centre = np.asarray(box_sdf.origin) + float(box_sdf.voxel_size) * (res - 1) / 2
+    half = float(box_sdf.voxel_size) * res / 2
+    np.testing.assert_allclose(batched[:, :15], ((a["contacts"] - centre) / half).reshape(5, 15), atol=1e-12)
+    # a sphere's clearance is its SDF distance minus its radius (through asinh)
+    c = len(svh.spec.contact_sites)
+    start = c * (3 + 1 + 3 + 27)
+    for i in (0, 3):
+        centres, radii = K.collision_spheres(svh, args[0][i], args[1][i])
+        d, _ = sdf_mod.query(box_sdf, centres)
+        np.testing.assert_allclose(batched[i, start:start + len(radii)],
+                                   np.arcsinh((np.asarray(d) - np.asarray(radii)) / 0.004), rtol=1e-9, atol=1e-9)
+    # the last columns: the metrics through asinh(x / scale), then the object's size and table height
+    m = len(evaluator.METRICS)
+    np.testing.assert_allclose(batched[:, -2 - evaluator.input_width(svh):-2 - evaluator.input_width(svh) + m],
+                               np.arcsinh(inputs[:, :m] / np.array(list(evaluator.METRICS.values()))), atol=1e-12)
+
+
+def test_grasp_inputs_refuse_missing_metrics(svh):
+    a = grasps(svh, 2, seed=2)
+    del a["E_m"]
+    with pytest.raises(FfcgsError, match="E_m"):
+        evaluator.grasp_inputs(a, 5)
+
+
+def synthetic(n_obj=12, per=40, width=6, seed=0) -> evaluator_data.LabelData:
+    """A known rule: passing = x0 + 0.5 x1 > 0 (head 0), x2 > 0 (head 1), both (head "all")."""
+    rng = np.random.default_rng(seed)
+    x = rng.normal(size=(n_obj * per, width)).astype(np.float32)
+    y0, y1 = x[:, 0] + 0.5 * x[:, 1] > 0, x[:, 2] > 0
+    y = np.stack([y0, y1, y0 & y1], 1).astype(np.float32)
+    objs = np.repeat([f"o{i:02d}" for i in range(n_obj)], per)
+    return evaluator_data.LabelData(x, y, objs, np.ones(len(x), bool), rng.normal(size=len(x)),
+                                    ("lift_shake", "six_dir", "all"), np.full(len(x), "train"))
+
+
+def cfg_for(tmp_path, name, **kw) -> EvaluatorTrainConfig:
+    return EvaluatorTrainConfig(out=str(tmp_path / name), hand="svh", data=EvaluatorDataConfig("unused.mcap"),
+                                net=EvaluatorNetConfig(hidden=32, depth=2),
+                                optim=EvaluatorOptimConfig(lr=3e-3, epochs=kw.pop("epochs", 25), batch=32,
+                                                           weight_decay=0.0),
+                                cv=CVConfig(folds=3, fold=kw.pop("fold", 0)), **kw)
+
+
+def test_training_recovers_a_known_rule_on_held_out_objects(tmp_path):
+    data = synthetic()
+    s = evaluator_train.train(cfg_for(tmp_path, "rule"), progress=False, data=data)
+    assert s["val_auc_lift_shake"] > 0.97 and s["val_auc_six_dir"] > 0.97 and s["val_auc_all"] > 0.97
+    assert s["val_within_auc_valid"] > 0.95
+    # the folds hold whole objects: no object is on both sides
+    assert s["val_objects"] and not set(s["val_objects"]) & set(data.objects[~np.isin(data.objects,
+                                                                                       s["val_objects"])])
+    assert s["train_objects"] + len(s["val_objects"]) == 12
+    assert (tmp_path / "rule" / "metrics.png").is_file() and (tmp_path / "rule" / "weights.npz").is_file()
+
+
+def test_every_object_is_held_out_exactly_once_across_folds(tmp_path):
+    data = synthetic(n_obj=7, per=20)
+    held = []
+    for k in range(3):
+        s = evaluator_train.train(cfg_for(tmp_path, f"f{k}", fold=k, epochs=1), progress=False, data=data)
+        held += s["val_objects"]
+    assert sorted(held) == sorted(set(data.objects.tolist()))
+
+
+def test_a_resumed_run_equals_an_uninterrupted_one(tmp_path):
+    data = synthetic(n_obj=6, per=30)
+    whole = evaluator_train.train(cfg_for(tmp_path, "a", epochs=4), progress=False, data=data)
+    assert evaluator_train.train(cfg_for(tmp_path, "b", epochs=4), progress=False, data=data, until_epoch=2) is None
+    resumed = evaluator_train.train(cfg_for(tmp_path, "b", epochs=4), progress=False, data=data)
+    wa, _ = checkpoint.load(tmp_path / "a" / "weights.npz")
+    wb, _ = checkpoint.load(tmp_path / "b" / "weights.npz")
+    for x, y in zip(jax.tree.leaves(wa), jax.tree.leaves(wb)):
+        np.testing.assert_array_equal(x, y)
+    assert whole["train_auc_all"] == resumed["train_auc_all"]
+
+
+def write_labelled(path, hand, grid, split="train", n_obj=4, per=24):
+    """A labelled dataset file of synthetic grasps on one SDF, labels from a rule of the grasp's height."""
+    w = dio.DatasetWriter(path, {"hand": "svh", "keep": "all"}, extra={"note": "test"})
+    ids = []
+    for i in range(n_obj):
+        a = grasps(hand, per, seed=10 + i)
+        high = a["wrist_pose"][:, 2, 3] > 0.05
+        labels = {k: np.asarray(a[k], np.float32) for k in (*evaluator.METRICS, "contact_dist", "contacts")
+                  if k not in schema.GRASP_ARRAYS}
+        labels |= {"valid": a["valid"], "force_closure": a["force_closure"], "n_contacts": a["n_contacts"],
+                   "squeeze_dir": a["squeeze_dir"]}
+        name = f"obj{i}"
+        rec = schema.Record.create(
+            object_name=name, mesh_sha256=hashlib.sha256(name.encode()).hexdigest(), rotation_index=0,
+            rotation=np.eye(3), split=split if i == 0 else "train", sdf=grid, wrist_pose=a["wrist_pose"], q=a["q"],
+            epsilon=a["epsilon"], E=a["E"], E_g=a["E_g"], E_c=a["E_c"], lift_shake_success=high,
+            six_dir_success=high | (a["q"][:, 0] > 0), **labels)
+        w.add(rec)
+        ids.append(rec.record_id)
+    return w.finish(expected=ids)
+
+
+def test_ffcgs_train_model_evaluator_on_a_labelled_file(tmp_path, svh, box_sdf, capsys):
+    f = write_labelled(tmp_path / "labels.mcap", svh, box_sdf)
+    data = evaluator_data.load(f, svh, progress=False)
+    assert data.heads == ("lift_shake", "six_dir", "all") and data.x.shape == (96, evaluator.feature_width(svh))
+    # the training path's features are the inference path's: the same numbers give the same predictions
+    out = tmp_path / "run"
+    rc = train_command.main(["--model", "evaluator", "--data.path", str(f), "--cv.fold", "-1", "--optim.epochs",
+                             "2", "--optim.batch", "16", "--net.hidden", "16", "--out", str(out)])
+    assert rc == 0, capsys.readouterr().err
+    weights, meta = load_evaluator(out / "weights.npz", svh)
+    assert meta["heads"] == ["lift_shake", "six_dir", "all"]
+    rec = next(iter(dio.iter_records(f)))
+    arrays = rec.grasp_arrays()
+    sdf = sdf_mod.GradientSDF(*(jnp.asarray(getattr(rec, k), jnp.float32)
+                                for k in ("grid", "origin", "voxel_size", "table_z")))
+    pred = prediction.predictions(weights, meta, svh, sdf, arrays)
+    rows = evaluator_train.predict_rows(weights, data.x[:24])
+    np.testing.assert_allclose(pred["pred_success"], rows[:, -1], atol=1e-5)
+    np.testing.assert_allclose(pred["pred_six_dir"], rows[:, 1], atol=1e-5)
+
+
+def test_test_split_records_are_refused(tmp_path, svh, box_sdf):
+    f = write_labelled(tmp_path / "t.mcap", svh, box_sdf, split="test", n_obj=2, per=4)
+    with pytest.raises(FfcgsError, match="test-split"):
+        evaluator_data.load(f, svh, progress=False)
+
+
+def test_unlabelled_files_are_refused(tmp_path, svh, box_sdf):
+    w = dio.DatasetWriter(tmp_path / "u.mcap", {"hand": "svh"}, extra={})
+    a = grasps(svh, 3, seed=0)
+    rec = schema.Record.create(object_name="u", mesh_sha256="0" * 64, rotation_index=0, rotation=np.eye(3),
+                               split="train", sdf=box_sdf, wrist_pose=a["wrist_pose"], q=a["q"], epsilon=a["epsilon"],
+                               E=a["E"], E_g=a["E_g"], E_c=a["E_c"])
+    w.add(rec)
+    f = w.finish(expected=[rec.record_id])
+    with pytest.raises(FfcgsError, match="keep all"):
+        evaluator_data.load(f, svh, progress=False)
+
+
+def test_ranking_by_prediction_is_deterministic_and_ties_go_by_index():
+    a = {"valid": np.array([True, False, True, True, True]), "E": np.array([5.0, 0.0, 1.0, 3.0, 2.0]),
+         "pred_success": np.array([0.5, 0.99, 0.9, 0.5, 0.1]), "rank_by": np.array("predicted"),
+         "q": np.zeros((5, 9))}
+    assert ranking.ranked(a).tolist() == [2, 0, 3, 4, 1]
+    assert ranking.ranked(a).tolist() == ranking.ranked(dict(a)).tolist()
+    assert ranking.ranked({**a, "rank_by": np.array("energy")}).tolist() == [2, 4, 3, 0, 1]
+    old = {k: v for k, v in a.items() if k not in ("pred_success", "rank_by")}  # a file from before the predictor
+    assert ranking.ranked(old).tolist() == [2, 4, 3, 0, 1]
+    assert ranking.ranked({**old, "rank_by": np.array("predicted")}).tolist() == [2, 4, 3, 0, 1]
+
+
+def test_rank_predicted_without_a_predictor_is_one_line():
+    allegro = K.load_hand("allegro")
+    if shipped_evaluator(allegro.spec.name).is_file():
+        pytest.skip("a predictor ships for the Allegro")
+    assert prediction.resolve("auto", allegro) == ("energy", None)
+    with pytest.raises(FfcgsError, match="needs a success predictor"):
+        prediction.resolve("predicted", allegro)
+    with pytest.raises(FfcgsError, match="rank must be one of"):
+        prediction.resolve("best", allegro)
+
+
+def good_weights(hand, tmp_path):
+    w = evaluator.init(jax.random.key(0), evaluator.feature_width(hand), 3, 8, 1)
+    norm = {"mean": np.zeros(evaluator.feature_width(hand), np.float32),
+            "scale": np.ones(evaluator.feature_width(hand), np.float32)}
+    meta = {"format": EVALUATOR_FORMAT, "hand": hand.spec.name, "heads": ["lift_shake", "six_dir", "all"],
+            "feature_version": evaluator.FEATURE_VERSION, "net": {"hidden": 8, "depth": 1}}
+    return {"net": w, "norm": norm}, meta
+
+
+@pytest.mark.parametrize("break_it, message", [
+    (lambda t, m: (t, {**m, "format": "ffcgs.cvae.v1"}), "not a success-predictor weights file"),
+    (lambda t, m: (t, {**m, "hand": "allegro_right"}), "was trained for hand"),
+    (lambda t, m: (t, {**m, "feature_version": 0}), "features v0"),
+    (lambda t, m: (t, {k: v for k, v in m.items() if k != "net"}), "lacks the network"),
+    (lambda t, m: ({**t, "norm": {"mean": t["norm"]["mean"][:5], "scale": t["norm"]["scale"]}}, m), "do not fit"),
+    (lambda t, m: ({**t, "net": {**t["net"], "head": {"w": np.full_like(t["net"]["head"]["w"], np.nan),
+                                                     "b": t["net"]["head"]["b"]}}}, m), "NaN"),
+])
+def test_bad_weights_are_one_line(tmp_path, svh, break_it, message):
+    tree, meta = break_it(*good_weights(svh, tmp_path))
+    path = checkpoint.save(tmp_path / "w.npz", tree, meta)
+    with pytest.raises(FfcgsError, match=message) as e:
+        prediction.weights_for(svh, str(path))
+    assert "\n" not in str(e.value)
+    tree, meta = good_weights(svh, tmp_path)
+    prediction.weights_for(svh, str(checkpoint.save(tmp_path / "ok.npz", tree, meta)))  # the unbroken file loads
+
+
+def test_missing_and_foreign_files_are_one_line(tmp_path, svh):
+    with pytest.raises(FfcgsError, match="not found"):
+        prediction.weights_for(svh, str(tmp_path / "none.npz"))
+    (tmp_path / "text.npz").write_text("hello")
+    with pytest.raises(FfcgsError) as e:
+        prediction.weights_for(svh, str(tmp_path / "text.npz"))
+    assert "\n" not in str(e.value)
+
+
+def test_rank_metrics_against_brute_force():
+    rng = np.random.default_rng(5)
+    s, y = rng.integers(0, 4, 40).astype(float), rng.uniform(size=40) < 0.4
+    pairs = [(a, b) for a in np.flatnonzero(y) for b in np.flatnonzero(~y)]
+    brute = np.mean([1.0 if s[a] > s[b] else 0.5 if s[a] == s[b] else 0.0 for a, b in pairs])
+    assert rank_metrics.auc(s, y) == pytest.approx(brute, abs=1e-12)
+    g = np.repeat([0, 1, 2, 3], 10)
+    top = rank_metrics.top_k(s, y, g, 1)
+    for i in range(4):
+        idx = np.flatnonzero(g == i)
+        assert top[i] == y[idx[np.argmax(s[idx])]]
+    rel = rank_metrics.reliability(np.linspace(0, 1, 40), y, bins=4)
+    assert sum(n for _, _, n in rel["bins"]) == 40 and 0 <= rel["ece"] <= 1
+
+
+def test_shipped_weights_load_and_are_small(svh):
+    path = shipped_evaluator(svh.spec.name)
+    if not path.is_file():
+        pytest.skip("no predictor ships for the SVH")
+    weights, meta = load_evaluator(path, svh)
+    assert path.stat().st_size < 4e6
+    assert meta["heads"][-1] == "all" and json.loads(json.dumps(meta))
+    assert dataclasses.is_dataclass(EvaluatorTrainConfig())
