@@ -215,6 +215,7 @@ def synthesize(hand: Hand, mesh: trimesh.Trimesh | sdf_mod.GradientSDF, cfg: Gra
     on. `grid`: plan on this SDF instead of building one from the mesh."""
     check_all(cfg)  # nested configs too: an unknown optim.method must not silently fall back
     cfg = for_hand(cfg, hand)
+    prediction.resolve(cfg.rank, hand, cfg.evaluator)  # a bad predictor file is one line before any compile
     clock = compile_clock.compiling
     # The ahead-of-time compiles are timed where they happen; whatever else compiles during the call (a
     # process's first call: the SDF build, the target, the packing of the results) is counted by `clock` and moved

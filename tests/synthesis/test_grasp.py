@@ -265,3 +265,38 @@ def test_squeeze_direction_is_sum_of_jacobian_transposed_normals(svh, meshes):
     _, normals, _ = mesh_contacts(meshes["box"], a["contacts"])
     expected = squeeze_direction(jac, normals, touching)
     np.testing.assert_allclose(a["squeeze_dir"][some], expected[some], atol=0.05)
+
+
+def test_grasps_are_ranked_by_the_shipped_predictor(svh, meshes, box_run):
+    """`pred_success` is the predictor on the call's own SDF (the same numbers from the host path), in [0, 1];
+    the order puts valid grasps first, each by decreasing prediction; --rank energy keeps E's order."""
+    from ffcgs_jax.evaluation import ranking
+    from ffcgs_jax.synthesis import prediction
+
+    found = prediction.weights_for(svh)
+    if found is None:
+        pytest.skip("no predictor ships for the SVH")
+    a = box_run.arrays
+    assert str(a["rank_by"]) == "predicted"
+    p = a["pred_success"]
+    assert p.shape == (N,) and ((p >= 0) & (p <= 1)).all()
+    assert {"pred_lift_shake", "pred_six_dir"} <= set(a)
+    grid = sdf_mod.build_sdf(meshes["box"], BOX.sdf)
+    again = prediction.predictions(*found, svh, grid, a)
+    np.testing.assert_allclose(again["pred_success"], p, atol=1e-6)
+    order = box_run.order()
+    v = a["valid"][order]
+    assert not (v[1:] & ~v[:-1]).any()  # valid ones first
+    for group in (order[v], order[~v]):
+        assert (np.diff(p[group]) <= 0).all()
+    energy = ranking.ranked({**a, "rank_by": np.array("energy")})
+    assert energy.tolist() == np.lexsort((np.arange(N), a["E"], ~a["valid"])).tolist()
+    assert any(r[0].startswith("predicted success") for r in G.summary_rows(box_run))
+
+
+def test_a_bad_evaluator_file_is_one_line_before_compiling(svh, meshes, tmp_path):
+    bad = tmp_path / "bad.npz"
+    np.savez(bad, x=np.zeros(3))
+    with pytest.raises(FfcgsError, match="bad.npz") as e:
+        G.synthesize(svh, meshes["box"], dataclasses.replace(BOX, evaluator=str(bad)))
+    assert "\n" not in str(e.value)
