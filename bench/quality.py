@@ -509,15 +509,15 @@ def validated_table(report: dict) -> str:
     if not all(p in prot for p in PROTOCOLS):
         return ""
     extra = [p for p in prot if p not in PROTOCOLS]
-    lines = ["| row | objects | top-1 both: analytic order | top-1 both: validated | "
-             + "".join(f"top-1 {p}: analytic | top-1 {p}: validated | " for p in extra)
+    lines = ["| row | objects | top-1 both: offered order | top-1 both: validated | "
+             + "".join(f"top-1 {p}: offered | top-1 {p}: validated | " for p in extra)
              + "median penetration of returned grasps (mm) |",
              "|---|---|---|---|" + "---|---|" * len(extra) + "---|"]
     for s in summarise(report):
         recs = [r for r in report["records"] if r["row"] == s["row"]]
         firsts = [validated_first(r) for r in recs]
         figs = [object_figures(r, prot, conf["contact_tol"]) for r in recs]
-        def analytic(names):  # the analytic first grasp was tested and passed every protocol of `names`
+        def analytic(names):  # the offered first grasp was tested and passed every protocol of `names`
             return sum(f["top1"] is not None and f["tested"] > 0 and int(np.asarray(r["tested"])[0]) == f["top1"]
                        and all(bool(f["success"][p][0]) for p in names) for f, r in zip(figs, recs))
 
@@ -530,8 +530,9 @@ def validated_table(report: dict) -> str:
         lines.append(f"| {s['row']} | {len(recs)} | {rate((analytic(PROTOCOLS), len(recs)))} | "
                      f"{rate((validated(PROTOCOLS), len(recs)))} | "
                      + "".join(f"{c} | " for c in cells) + f"{_g(s['pen_mm'])} |")
-    lines += ["", "top-1 by object: the first grasp offered passes (an object without a valid grasp fails). Analytic "
-              "order: valid, then E (`ffcgs grasp`). Validated: the grasps that pass lift-shake and six-dir first "
+    lines += ["", "top-1 by object: the first grasp offered passes (an object without a valid grasp fails). Offered "
+              "order: what `ffcgs grasp` returns first (valid, then predicted success; E with --rank energy or no "
+              "predictor for the hand). Validated: the grasps that pass lift-shake and six-dir first "
               "(`ffcgs grasp --validate`, `fj.validate`), from the same simulations as the columns above"
               + (f"; {', '.join(extra)} is an independent check of the validated grasp" if extra else "") + "."]
     return "\n".join(lines) + "\n"

@@ -47,6 +47,8 @@ _API = {
     "DatasetConfig": ("ffcgs_jax.dataset.config", "DatasetConfig"),
     "train_sampler": ("ffcgs_jax.learning.train", "train"),
     "TrainConfig": ("ffcgs_jax.learning.config", "TrainConfig"),
+    "train_evaluator": ("ffcgs_jax.learning.evaluator_train", "train"),
+    "EvaluatorTrainConfig": ("ffcgs_jax.learning.config", "EvaluatorTrainConfig"),
     "FfcgsError": ("ffcgs_jax.errors", "FfcgsError"),
     "enable_compilation_cache": ("ffcgs_jax.runtime.jax_cache", "enable"),
     "clear_compiled": ("ffcgs_jax.synthesis.grasp", "clear_compiled"),
@@ -70,7 +72,8 @@ if TYPE_CHECKING:  # what the lazy names are, for type checkers and editors
     from ffcgs_jax.geometry.mesh_io import load_mesh  # noqa: F401
     from ffcgs_jax.geometry.sdf import build_sdf  # noqa: F401
     from ffcgs_jax.hand.kinematics import load_hand  # noqa: F401
-    from ffcgs_jax.learning.config import TrainConfig  # noqa: F401
+    from ffcgs_jax.learning.config import EvaluatorTrainConfig, TrainConfig  # noqa: F401
+    from ffcgs_jax.learning.evaluator_train import train as train_evaluator  # noqa: F401
     from ffcgs_jax.learning.train import train as train_sampler  # noqa: F401
     from ffcgs_jax.physics.config import PROTOCOLS, PhysicsConfig  # noqa: F401
     from ffcgs_jax.physics.runner import evaluate_grasps as evaluate_physics  # noqa: F401

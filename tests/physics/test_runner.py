@@ -250,6 +250,12 @@ def test_validate_puts_the_grasps_that_pass_first(monkeypatch):
     assert early["physics_passed"].tolist() == [False, True, False]
     assert early["six_dir_reason"][0] > 0 and early["lift_shake_reason"][0] == -1  # not run after six-dir failed
     assert bool(early["lift_shake_success"][1]) and early["six_dir_reason"][2] == -1
+    # ranked by the success predictor, the grasp it believes in is simulated first: one simulation suffices
+    believed = fj.GraspSet(dict(arrays3, pred_success=np.array([0.2, 0.9, 0.5]), rank_by=np.array("predicted")),
+                           {"E": np.zeros((2, 3))}, GraspConfig(), "ball")
+    assert believed.order().tolist() == [1, 2, 0]
+    quick = fj.validate(SPEC, BALL, believed, ["six-dir"], PhysicsConfig(friction=1.0, backend="cpu"), need=1)
+    assert quick["physics_tested"].tolist() == [False, True, False] and quick.order()[0] == 1
     rows = dict(physics_validate.summary_rows(checked, ["six-dir"]))
     assert rows["physics-checked"].startswith("1 of 2 tested grasps pass six-dir") and \
         rows["physics-checked"].endswith("the first grasp passes")
