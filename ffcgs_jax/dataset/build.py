@@ -93,6 +93,8 @@ def record_config(cfg: DatasetConfig) -> dict:
     for k in ("workers", "backend"):  # where the physics runs (the backends' outcomes agree: bench/RESULTS.md)
         d["physics"].pop(k)
     d["grasp"].pop("devices")  # where it runs, not what it computes
+    for k in ("rank", "evaluator"):  # the order grasps are offered in: records keep every candidate, unranked
+        d["grasp"].pop(k)
     if cfg.sampler != "cvae":  # the planner samples geometric poses: cvae settings do not matter
         for k in ("cvae_oversample", "weights"):
             d["grasp"]["sampling"].pop(k)

@@ -1,6 +1,6 @@
 """Batches padded to a fixed size, so that compiled work sees one shape and is reused: the SDF builder's jitted
 kernels (`geometry.sdf_build`) and the physics backends' fixed world counts (`physics.backend_mjx`,
-`physics.backend_warp`)."""
+`physics.backend_warp`), and the success predictor's calls (`synthesis.prediction`)."""
 
 import numpy as np
 

@@ -15,9 +15,11 @@ import numpy as np
 from ffcgs_jax.errors import FfcgsError
 from ffcgs_jax.learning import evaluator
 from ffcgs_jax.learning.weights import load_evaluator, shipped_evaluator
+from ffcgs_jax.runtime.fixed_shapes import pad_rows
 from ffcgs_jax.synthesis.config import RANKS
 
 
+BUCKET = 32
 _LOADED: dict = {}
 
 
@@ -61,7 +63,9 @@ def predictions(weights: dict, meta: dict, hand, sdf, arrays: dict) -> dict[str,
         return {"pred_success": np.zeros(0)} | {f"pred_{h}": np.zeros(0) for h in heads[:-1]}
     dt = sdf.grid.dtype
     inputs = evaluator.grasp_inputs(arrays, len(hand.spec.contact_sites))
-    p = evaluator.predict(weights, hand, sdf, jnp.asarray(arrays["wrist_pose"], dt), jnp.asarray(arrays["q"], dt),
-                          jnp.asarray(arrays["contacts"], dt), jnp.asarray(inputs, dt))
-    p = np.asarray(p, np.float64)
+    # padded to a multiple of BUCKET rows: every call of up to 32 grasps (and so on) shares one executable
+    m = -(-n // BUCKET) * BUCKET
+    rows = [pad_rows(np.asarray(arrays[k]), m) for k in ("wrist_pose", "q", "contacts")] + [pad_rows(inputs, m)]
+    p = evaluator.predict(weights, hand, sdf, *(jnp.asarray(r, dt) for r in rows))
+    p = np.asarray(p, np.float64)[:n]
     return {"pred_success": p[:, -1]} | {f"pred_{h}": p[:, i] for i, h in enumerate(heads[:-1])}

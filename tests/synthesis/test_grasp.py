@@ -135,10 +135,12 @@ def test_valid_is_the_and_of_the_filters(run):
     np.testing.assert_array_equal(a["valid"], expected)
     order = run.order()
     assert sorted(order.tolist()) == list(range(N))
-    v, E = a["valid"][order], a["E"][order]
+    v = a["valid"][order]
+    # each group by decreasing predicted success where a predictor ranks, else by increasing E
+    key = -a["pred_success"][order] if str(a.get("rank_by")) == "predicted" else a["E"][order]
     assert (np.diff(v.astype(int)) <= 0).all()  # valid ones first
     for group in (v, ~v):
-        assert (np.diff(E[group]) >= 0).all()
+        assert (np.diff(key[group]) >= 0).all()
     rows = dict(G.summary_rows(run))
     assert rows["grasps (valid / sampled)"] == f"{int(a['valid'].sum())} / {N}"
 
