@@ -88,7 +88,7 @@ def _field(cfg, dotted: str):
     return hints[name]
 
 
-def parse_sweep(cfg: TrainConfig, specs: list[str]) -> list[tuple[str, list]]:
+def parse_sweep(cfg: TrainConfig | EvaluatorTrainConfig, specs: list[str]) -> list[tuple[str, list]]:
     """["optim.lr=1e-4,3e-4"] -> [("optim.lr", [1e-4, 3e-4])], values converted to the field's type."""
     grid = []
     for spec in specs:
@@ -130,10 +130,14 @@ def run_cv_evaluator(cfg: EvaluatorTrainConfig) -> dict:
     files.write_text(Path(cfg.out) / "cv.md", text + "\n")
     print(text)
     keys = [k for k in rows[0] if k.startswith("val_") and isinstance(rows[0][k], float)]
-    return {k: float(np.nanmean([r[k] for r in rows])) for k in keys} | {"time_s": sum(r["time_s"] for r in rows)}
+    def mean(k):  # a figure a fold could not measure (no held-out object with both outcomes) is NaN there
+        finite = [r[k] for r in rows if np.isfinite(r[k])]
+        return float(np.mean(finite)) if finite else float("nan")
+
+    return {k: mean(k) for k in keys} | {"time_s": sum(r["time_s"] for r in rows)}
 
 
-def run_cv(cfg: TrainConfig) -> dict:
+def run_cv(cfg: TrainConfig | EvaluatorTrainConfig) -> dict:
     """Every fold of cfg.cv in OUT/fold<k>/, then OUT/cv.md; returns the mean summary."""
     from ffcgs_jax.learning import data as cvae_data
 
@@ -172,7 +176,7 @@ def run_one(cfg: TrainConfig | EvaluatorTrainConfig) -> dict:
     return train(cfg) | {"time_s": time.perf_counter() - t0}
 
 
-def run_sweep(cfg: TrainConfig, grid: list[tuple[str, list]]) -> list[dict]:
+def run_sweep(cfg: TrainConfig | EvaluatorTrainConfig, grid: list[tuple[str, list]]) -> list[dict]:
     keys = [k for k, _ in grid]
     rows = []
     for values in itertools.product(*(v for _, v in grid)):

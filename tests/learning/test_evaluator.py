@@ -233,6 +233,25 @@ def test_ffcgs_train_model_evaluator_on_a_labelled_file(tmp_path, svh, box_sdf, 
     np.testing.assert_allclose(pred["pred_six_dir"], rows[:, 1], atol=1e-5)
 
 
+def test_a_sweep_from_the_command_line_writes_its_table(tmp_path, svh, box_sdf, capsys):
+    f = write_labelled(tmp_path / "labels.mcap", svh, box_sdf, n_obj=3, per=16)
+    out = tmp_path / "sweep"
+    rc = train_command.main(["--model=evaluator", "--data.path", str(f), "--cv.folds", "3", "--optim.epochs", "1",
+                             "--optim.batch", "8", "--net.hidden", "8", "--out", str(out),
+                             "--sweep", "optim.weight_decay=0,2"])
+    assert rc == 0, capsys.readouterr().err
+    table = (out / "sweep.md").read_text().splitlines()
+    assert table[0].startswith("| optim.weight_decay | val within-object AUC") and len(table) == 4
+    assert (out / "sweep" / "optim.weight_decay=2.0" / "weights.npz").is_file()
+    rc = train_command.main(["--model", "evaluator", "--data.path", str(f), "--cv.folds", "3", "--cv.all",
+                             "--optim.epochs", "1", "--optim.batch", "8", "--net.hidden", "8", "--out", str(tmp_path / "cv")])
+    assert rc == 0, capsys.readouterr().err
+    cv = (tmp_path / "cv" / "cv.md").read_text()
+    assert cv.count("\n| ") == 3 and "over 3 folds: within-object AUC" in cv  # a row per fold
+    assert train_command.main(["--model", "critic", "--data.path", str(f)]) == 2
+    assert "unknown --model 'critic'" in capsys.readouterr().err
+
+
 def test_test_split_records_are_refused(tmp_path, svh, box_sdf):
     f = write_labelled(tmp_path / "t.mcap", svh, box_sdf, split="test", n_obj=2, per=4)
     with pytest.raises(FfcgsError, match="test-split"):
