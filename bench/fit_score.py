@@ -17,21 +17,16 @@ import sys
 from pathlib import Path
 
 import numpy as np
-from scipy.stats import rankdata
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from ffcgs_jax import files  # noqa: E402
+from ffcgs_jax.evaluation import rank_metrics as M  # noqa: E402
 from ffcgs_jax.evaluation import score as S  # noqa: E402
 
 L2 = 1e-2
 
 
-def auc(s: np.ndarray, y: np.ndarray) -> float:
-    """Probability that a random passing grasp scores above a random failing one (ties count half)."""
-    r = rankdata(s)
-    n1 = y.sum()
-    n0 = len(y) - n1
-    return float((r[y].sum() - n1 * (n1 + 1) / 2) / (n1 * n0)) if n1 and n0 else float("nan")
+auc = M.auc  # the project's one AUC (ties count half); kept under this name for the script's callers
 
 
 def dataset(paths: list[str], train_only: bool = True) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -62,13 +57,7 @@ def dataset(paths: list[str], train_only: bool = True) -> tuple[np.ndarray, np.n
 def within(s: np.ndarray, y: np.ndarray, groups: np.ndarray) -> tuple[float, float]:
     """How well `s` (higher = better) ranks grasps within one call: mean AUC over groups with both outcomes, and the
     share of groups whose best-scored grasp passes (top-1)."""
-    aucs, top = [], []
-    for g in np.unique(groups):
-        i = groups == g
-        top.append(y[i][np.argmax(s[i])])
-        if 0 < y[i].sum() < i.sum():
-            aucs.append(auc(s[i], y[i]))
-    return float(np.mean(aucs)), float(np.mean(top))
+    return M.within_auc(s, y, groups)[0], float(M.top_k(s, y, groups, 1).mean())
 
 
 def fit(F: np.ndarray, y: np.ndarray) -> dict:

@@ -13,6 +13,18 @@ from ffcgs_jax.config import check_integer, is_finite
 from ffcgs_jax.errors import FfcgsError
 
 
+def check_adam(optim) -> None:
+    """The Adam fields every training's optim section has (lr, b1, b2, eps), refused in one line when out of range."""
+    if not (is_finite(optim.lr) and 0 < optim.lr <= 1):
+        raise FfcgsError(f"optim.lr must be in (0, 1], got {optim.lr!r}")
+    for name in ("b1", "b2"):
+        v = getattr(optim, name)
+        if not (is_finite(v) and 0 <= v < 1):
+            raise FfcgsError(f"optim.{name} must be in [0, 1), got {v!r}")
+    if not (is_finite(optim.eps) and 0 < optim.eps <= 1):
+        raise FfcgsError(f"optim.eps must be in (0, 1], got {optim.eps!r}")
+
+
 @dataclasses.dataclass(frozen=True)
 class ModelConfig:
     """Shapes of the CVAE (see `cvae.py`); all of them are static, so they live here and not in the params.
@@ -63,14 +75,7 @@ class TrainOptimConfig:
     grad_clip: float = 0.0
 
     def check(self) -> None:
-        if not (is_finite(self.lr) and 0 < self.lr <= 1):
-            raise FfcgsError(f"optim.lr must be in (0, 1], got {self.lr!r}")
-        for name in ("b1", "b2"):
-            v = getattr(self, name)
-            if not (is_finite(v) and 0 <= v < 1):
-                raise FfcgsError(f"optim.{name} must be in [0, 1), got {v!r}")
-        if not (is_finite(self.eps) and 0 < self.eps <= 1):
-            raise FfcgsError(f"optim.eps must be in (0, 1], got {self.eps!r}")
+        check_adam(self)
         check_integer("optim.batch", self.batch, 1, 65536)
         check_integer("optim.epochs", self.epochs, 1, 100_000)
         if not (is_finite(self.grad_clip) and self.grad_clip >= 0):
@@ -246,14 +251,7 @@ class EvaluatorOptimConfig:
     weight_decay: float = 1.0
 
     def check(self) -> None:
-        if not (is_finite(self.lr) and 0 < self.lr <= 1):
-            raise FfcgsError(f"optim.lr must be in (0, 1], got {self.lr!r}")
-        for name in ("b1", "b2"):
-            v = getattr(self, name)
-            if not (is_finite(v) and 0 <= v < 1):
-                raise FfcgsError(f"optim.{name} must be in [0, 1), got {v!r}")
-        if not (is_finite(self.eps) and 0 < self.eps <= 1):
-            raise FfcgsError(f"optim.eps must be in (0, 1], got {self.eps!r}")
+        check_adam(self)
         check_integer("optim.batch", self.batch, 1, 1 << 20)
         check_integer("optim.epochs", self.epochs, 1, 100_000)
         if not (is_finite(self.weight_decay) and 0 <= self.weight_decay and self.lr * self.weight_decay < 1):

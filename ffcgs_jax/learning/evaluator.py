@@ -21,8 +21,6 @@ never trained), SiLU, one logit per head: each protocol of the training data, th
 them), which is what `GraspSet.order` ranks by (`pred_success`). Params are nested dicts of arrays (no flax).
 """
 
-import math
-
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -151,6 +149,3 @@ def bce(z: Float[Array, "*B H"], y: Float[Array, "*B H"]) -> Float[Array, "*B H"
     """Binary cross-entropy of logits z against labels y in [0, 1], stable for any z."""
     return jnp.maximum(z, 0) - z * y + jnp.log1p(jnp.exp(-jnp.abs(z)))
 
-
-def num_params(net: dict) -> int:
-    return sum(math.prod(x.shape) for x in jax.tree.leaves(net))

@@ -18,6 +18,7 @@ from ffcgs_jax.errors import FfcgsError
 from ffcgs_jax.files import check_file
 from ffcgs_jax.geometry.sdf import GradientSDF
 from ffcgs_jax.learning import evaluator
+from ffcgs_jax.runtime.fixed_shapes import pad_rows
 
 PAD = 64  # records are padded to a multiple of this many grasps: one compilation for a whole build
 
@@ -46,7 +47,7 @@ def record_features(hand, rec_arrays: dict, grid, origin, voxel_size, table_z) -
     c = len(hand.spec.contact_sites)
     inputs = evaluator.grasp_inputs(rec_arrays, c)
     m = -(-n // PAD) * PAD
-    pad = lambda a: np.concatenate([a, np.repeat(a[-1:], m - n, 0)]) if m > n else a  # noqa: E731
+    pad = lambda a: pad_rows(np.asarray(a), m)  # noqa: E731
     sdf = GradientSDF(jnp.asarray(grid, jnp.float32), jnp.asarray(origin, jnp.float32),
                       jnp.asarray(voxel_size, jnp.float32), jnp.asarray(table_z, jnp.float32))
     dt = np.float32

@@ -31,11 +31,13 @@ from ffcgs_jax.errors import FfcgsError
 from ffcgs_jax.evaluation import rank_metrics
 from ffcgs_jax.hand import kinematics as K
 from ffcgs_jax.learning import checkpoint, evaluator
+from ffcgs_jax.learning import layers as nn
 from ffcgs_jax.learning import data as cvae_data
 from ffcgs_jax.learning import evaluator_data
 from ffcgs_jax.learning.config import EvaluatorOptimConfig, EvaluatorTrainConfig, to_toml
-from ffcgs_jax.learning.train import check_run_folder, dataset_hand, truncate_log
+from ffcgs_jax.learning.train import dataset_hand, run_folder, truncate_log
 from ffcgs_jax.learning.weights import EVALUATOR_FORMAT
+from ffcgs_jax.runtime.fixed_shapes import pad_rows
 from ffcgs_jax.synthesis.optim import AdamState, adam_init, adam_update
 from ffcgs_jax.version import __version__
 
@@ -69,8 +71,7 @@ def logit_rows(weights: dict, x: np.ndarray, chunk: int = 8192) -> np.ndarray:
     out = []
     for s in range(0, len(x), chunk):
         part = x[s:s + chunk]
-        pad = np.resize(part, (chunk, x.shape[1])) if len(part) < chunk else part
-        out.append(np.asarray(_logits(weights["net"], weights["norm"], jnp.asarray(pad)))[:len(part)])
+        out.append(np.asarray(_logits(weights["net"], weights["norm"], jnp.asarray(pad_rows(part, chunk))))[:len(part)])
     return np.concatenate(out)
 
 
@@ -112,10 +113,7 @@ def train(cfg: EvaluatorTrainConfig, progress: bool = True, until_epoch: int | N
     if not isinstance(cfg, EvaluatorTrainConfig):
         raise FfcgsError(f"train takes an EvaluatorTrainConfig, got {type(cfg).__name__}")
     check_all(cfg)
-    out = Path(cfg.out).expanduser()
-    text = to_toml(cfg)
-    cfg_path, ckpt_path, log_path = out / "config.toml", out / "checkpoint.npz", out / "metrics.jsonl"
-    check_run_folder(out, cfg_path, ckpt_path, text)
+    out, text, cfg_path, ckpt_path, log_path = run_folder(cfg)
     # data handed in (cross-validation folds, tests) comes with its hand named in cfg.hand: no file to ask
     hand = K.load_hand(cfg.hand if data is not None and cfg.hand else dataset_hand(cfg.data.path, cfg.hand))
     if data is None:
@@ -188,7 +186,7 @@ def train(cfg: EvaluatorTrainConfig, progress: bool = True, until_epoch: int | N
     summary = {"heads": list(data.heads), "train_grasps": int(len(train_rows)), "val_grasps": int(len(val_rows)),
                "train_objects": len(set(objects[train_rows].tolist())),
                "val_objects": sorted(set(objects[val_rows].tolist())), "steps": total,
-               "params": evaluator.num_params(net), "backend": jax.default_backend(),
+               "params": nn.num_params(net), "backend": jax.default_backend(),
                **{f"train_{k}": v for k, v in train_fig.items()}, **{f"val_{k}": v for k, v in last.items()}}
     checkpoint.save(out / "weights.npz", weights,
                     weights_meta(cfg, hand.spec.name, data.heads, data.x.shape[1],

@@ -154,6 +154,16 @@ def weights_meta(cfg: TrainConfig, hand: str, extra: dict) -> dict:
             "train": {"config": to_toml(cfg)} | extra}
 
 
+def run_folder(cfg) -> tuple[Path, str, Path, Path, Path]:
+    """(out folder, the config as TOML, its config.toml, checkpoint.npz and metrics.jsonl) of a training run,
+    once `check_run_folder` allows the run there. Shared by every `ffcgs train` model."""
+    out = Path(cfg.out).expanduser()
+    text = to_toml(cfg)
+    cfg_path, ckpt_path, log_path = out / "config.toml", out / "checkpoint.npz", out / "metrics.jsonl"
+    check_run_folder(out, cfg_path, ckpt_path, text)
+    return out, text, cfg_path, ckpt_path, log_path
+
+
 def check_run_folder(out: Path, cfg_path: Path, ckpt_path: Path, text: str) -> None:
     """`out` may be new, empty, or this configuration's run (resumed); a file, another configuration's run, or a
     folder of other files is refused before anything is written."""
@@ -181,10 +191,7 @@ def train(cfg: TrainConfig, hand: str | None = None, progress: bool = True, unti
     if not isinstance(cfg, TrainConfig):
         raise FfcgsError(f"train takes a TrainConfig, got {type(cfg).__name__}")
     check_all(cfg)
-    out = Path(cfg.out).expanduser()
-    text = to_toml(cfg)
-    cfg_path, ckpt_path, log_path = out / "config.toml", out / "checkpoint.npz", out / "metrics.jsonl"
-    check_run_folder(out, cfg_path, ckpt_path, text)
+    out, text, cfg_path, ckpt_path, log_path = run_folder(cfg)
     # Everything that can refuse the run comes before its first write: a failed start leaves an existing run (and
     # a new --out) exactly as it was.
     if data is None:
