@@ -13,6 +13,21 @@ written (a folder, a read-only place, a name under a file) is refused with one l
 compiled. `atomic_write` / `atomic_path` write a temporary file in the same folder, flush and fsync it, then
 `os.replace` it over the target; on any failure, KeyboardInterrupt included, the temporary file is removed and the
 target is untouched.
+
+A folder's manifest also names the command and the run that wrote it (`written_by`; `run`: an id, the process id
+and the time; manifests of older versions have no `run` and are read as they are): a folder that another command
+wrote is refused without `--overwrite` (`check_folder_output`), so `render-depth --out` given a folder of
+`ffcgs grasp` results never replaces it. Temporaries are named `.STEM.ffcgs.PID.RANDOM.tmp.SUFFIX` (`temporary`):
+only names with that mark are the package's, so only those are ever cleaned (`remove_left_behind`) or passed over
+as not the user's; a user's `.notes.4242.tmp.txt` is a file like any other.
+
+Updates of one file that read it first (`ffcgs eval g.npz` adding its results to g.npz, `add_to_manifest`) are
+serialised by an advisory lock held from the read to the rename (`locks.locked`; its docstring says why a lock):
+a second run waits, then reads what the first wrote and adds to it, so both runs' results survive.
+
+Symlinks are followed to their target: writing through a link `g.npz -> runs/g.npz` replaces runs/g.npz
+atomically and the link stays a link; a folder output that is a link is swapped in beside the link's target, which
+gets the new files (no stale frame stays in the target), and the link keeps pointing at it.
 """
 
 import codecs
@@ -20,14 +35,18 @@ import contextlib
 import json
 import os
 import re
+import secrets
 import shutil
+import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import IO
 
 import numpy as np
 
+from ffcgs_jax import locks
 from ffcgs_jax.errors import FfcgsError
+from ffcgs_jax.locks import MARK, locked
 
 
 def check_output(path: str | Path, what: str = "output") -> Path:
@@ -36,7 +55,7 @@ def check_output(path: str | Path, what: str = "output") -> Path:
     path = Path(path).expanduser()
     if not path.name or path.is_dir():
         raise FfcgsError(f"{what} {path} is a folder; give a file name")
-    parent = path.parent
+    parent = target(path).parent  # a link is written through: its target's folder is the one written
     try:
         parent.mkdir(parents=True, exist_ok=True)
     except (FileExistsError, NotADirectoryError):
@@ -46,6 +65,13 @@ def check_output(path: str | Path, what: str = "output") -> Path:
     if not os.access(parent, os.W_OK | os.X_OK) or (path.exists() and not os.access(path, os.W_OK)):
         raise FfcgsError(f"cannot write {what} {path}: permission denied")
     return path
+
+
+def target(path: str | Path) -> Path:
+    """Where a write to `path` lands: the target of a symlink (resolved), `path` itself otherwise. Writes follow
+    links so that the link stays a link and the file or folder it points to is the one updated."""
+    path = Path(path).expanduser()
+    return resolved(path) if path.is_symlink() else path
 
 
 def check_folder(path: str | Path, what: str = "output folder") -> Path:
@@ -61,10 +87,11 @@ _ACTIVE: set[Path] = set()  # temporary files and folders being written now, for
 
 
 def discard_temporaries() -> None:
-    """Remove the temporary files of writes in progress: for a process about to exit at once (the CLI's SIGINT),
-    which runs no `finally` blocks."""
+    """Remove the temporary files of writes in progress, and the lock files of locks held: for a process about to
+    exit at once (the CLI's SIGINT), which runs no `finally` blocks (the kernel releases the locks themselves)."""
     for tmp in list(_ACTIVE):
         _remove(tmp)
+    locks.discard_held()
 
 
 def _remove(tmp: Path) -> None:
@@ -72,18 +99,33 @@ def _remove(tmp: Path) -> None:
         shutil.rmtree(tmp) if tmp.is_dir() else tmp.unlink()
 
 
-def _temporary(path: Path) -> Path:
-    # same folder (os.replace is atomic only within a filesystem), hidden, the suffix kept last so writers that
-    # pick a format from the extension (PIL, imageio) still see it
-    return path.with_name(f".{path.stem}.{os.getpid()}.tmp{path.suffix}")
+_MARKED = re.compile(rf"\..+\.{MARK}\.(\d+)\.[0-9a-f]{{8}}\.(tmp|old)(\.[^.]*)?")  # `temporary`'s names
+
+
+def temporary(path: str | Path, kind: str = "tmp") -> Path:
+    """A fresh name beside `path` for a temporary of this process: `.STEM.ffcgs.PID.RANDOM.tmp.SUFFIX` (`kind`
+    "tmp": a file or folder being written; "old": a folder being swapped out). Same folder (os.replace is atomic
+    only within a filesystem), hidden, marked as the package's (`is_ours`) and the suffix kept last so writers that
+    pick a format from the extension (PIL, imageio) still see it. Every temporary name of the package comes from
+    here."""
+    path = Path(path)
+    if kind not in ("tmp", "old"):
+        raise ValueError(f"temporary kind must be tmp or old, got {kind!r}")
+    return path.with_name(f".{path.stem}.{MARK}.{os.getpid()}.{secrets.token_hex(4)}.{kind}{path.suffix}")
+
+
+def is_ours(name: str) -> bool:
+    """Whether a file name is one of the package's temporaries or lock files (`temporary`, `locks.lock_file`)."""
+    return bool(_MARKED.fullmatch(name) or locks.LOCK_NAME.fullmatch(name))
 
 
 @contextlib.contextmanager
 def atomic_path(path: str | Path) -> Iterator[Path]:
     """A temporary path to write in place of `path`; it replaces `path` when the block ends without an error (or,
-    for an output of an `outputs_together` block, when that block ends)."""
-    path = Path(path)
-    with _staged(_temporary(path), path, _fsync, os.replace) as tmp:
+    for an output of an `outputs_together` block, when that block ends). A link `path` stays a link: its target
+    is replaced."""
+    path = target(path)
+    with _staged(temporary(path), path, _fsync, os.replace) as tmp:
         yield tmp
 
 
@@ -212,31 +254,58 @@ def manifest_files(folder: str | Path) -> set[str] | None:
 
 
 def read_manifest(folder: str | Path) -> dict | None:
-    """The manifest of `folder` ({"written_by": command, "files": names}), or None for a folder without one;
-    FfcgsError for one that cannot be read."""
+    """The manifest of `folder` ({"written_by": command, "run": `this_run()` of the run that wrote it last, or None
+    in a manifest of an older version, "files": names}), or None for a folder without one; FfcgsError for one that
+    cannot be read."""
     path = Path(folder) / MANIFEST
     if not path.is_file():
         return None
     try:
         m = json.loads(path.read_text())
-        names, by = m["files"], m.get("written_by", "")
-    except (OSError, ValueError, KeyError, TypeError):
+        names, by, run = m["files"], m.get("written_by", ""), m.get("run")
+    except (OSError, ValueError, KeyError, TypeError, AttributeError):
         raise FfcgsError(f"{path} is not a readable manifest (delete it to read the folder as it is)") from None
     if not isinstance(names, list) or not all(isinstance(n, str) for n in names):
         raise FfcgsError(f"{path} is not a readable manifest: 'files' must be a list of names")
-    return {"written_by": str(by), "files": names}
+    return {"written_by": str(by), "run": run if isinstance(run, dict) else None, "files": names}
+
+
+_RUN: dict = {}
+
+
+def this_run() -> dict:
+    """This process's run as a manifest names it: {"id": random hex, "pid": process id, "time": when it began
+    writing, ISO 8601}; one per process (a fork gets its own)."""
+    if _RUN.get("pid") != os.getpid():
+        _RUN.clear()
+        _RUN.update(id=secrets.token_hex(6), pid=os.getpid(), time=time.strftime("%Y-%m-%dT%H:%M:%S%z"))
+    return dict(_RUN)
+
+
+def _manifest_text(written_by: str, names) -> str:
+    return json.dumps({"written_by": written_by, "run": this_run(), "files": sorted(names)}, indent=1) + "\n"
 
 
 def add_to_manifest(folder: str | Path, name: str, written_by: str) -> None:
     """Name file `name` in the manifest of `folder`, a folder that a command fills one file at a time over one run
     or several (`ffcgs grasp` of many objects), before the file is written: a crash between the two leaves a name
     without a file, which a rerun writes, never a file that the manifest does not name (which
-    `check_folder_output` would refuse as someone else's). FfcgsError when another command wrote the folder."""
+    `check_folder_output` would refuse as someone else's). The read and the write hold the manifest's lock
+    (`locked`), so runs that fill one folder at once lose no name. FfcgsError when another command wrote the
+    folder."""
     folder = Path(folder)
-    m = manifest_by(folder, written_by) or {"written_by": written_by, "files": []}
-    if name not in m["files"]:
-        write_text(folder / MANIFEST, json.dumps({"written_by": written_by, "files": sorted({*m["files"], name})},
-                                                 indent=1) + "\n")
+    with locked(folder / MANIFEST):
+        m = manifest_by(folder, written_by) or {"files": []}
+        if name not in m["files"]:
+            write_text(folder / MANIFEST, _manifest_text(written_by, {*m["files"], name}))
+
+
+def writer(m: dict) -> str:
+    """Who wrote a folder, from its manifest (`read_manifest`), for messages: "ffcgs grasp (a run of TIME, pid
+    N)", or without the run for manifests of older versions."""
+    run = m.get("run") or {}
+    when = ", ".join(f"{k} {run[k]}" for k in ("time", "pid") if k in run)
+    return (m.get("written_by") or "another command") + (f" (run of {when})" if when else "")
 
 
 def manifest_by(folder: str | Path, written_by: str) -> dict | None:
@@ -244,18 +313,26 @@ def manifest_by(folder: str | Path, written_by: str) -> dict | None:
     than `written_by` wrote it (a folder of depth frames is no place for grasp files)."""
     m = read_manifest(folder)
     if m is not None and m["written_by"] != written_by:
-        raise FfcgsError(f"{folder} was written by {m['written_by'] or 'another command'}, not {written_by}; "
-                         "choose another folder")
+        raise FfcgsError(f"{folder} was written by {writer(m)}, not {written_by}; choose another folder")
     return m
 
 
-_LEFT_BEHIND = re.compile(r"\..+\.(\d+)\.(tmp|old)(\.[^.]*)?")  # `_temporary`'s and `_swap_folder`'s names
+def unlisted(folder: str | Path) -> list[str] | None:
+    """The files in `folder` (paths relative to it, sorted) that its manifest does not name, leaving out the
+    manifest and the package's own temporaries and locks (`is_ours`); None for a folder without a manifest.
+    Readers ignore these files, and say so."""
+    folder = Path(folder)
+    named = manifest_files(folder)
+    if named is None:
+        return None
+    return [n for n in _listing(folder) if n != MANIFEST and n not in named and not is_ours(Path(n).name)]
 
 
 def _left_behind(path: Path) -> bool:
     """Whether `path` is a temporary of ours that a process killed without a chance to clean up (SIGKILL, power
-    loss) left: named like one, by a process that no longer runs."""
-    m = _LEFT_BEHIND.fullmatch(path.name)
+    loss) left: marked as ours (`temporary`'s names; a user's `.notes.4242.tmp.txt` never is), by a process that
+    no longer runs."""
+    m = _MARKED.fullmatch(path.name)
     if m is None or int(m[1]) == os.getpid():
         return False
     try:
@@ -268,11 +345,14 @@ def _left_behind(path: Path) -> bool:
 
 
 def remove_left_behind(folder: str | Path) -> int:
-    """Remove the temporaries that killed runs left in `folder` (`_left_behind`); how many."""
-    stale = [p for p in Path(folder).iterdir() if _left_behind(p)] if Path(folder).is_dir() else []
+    """Remove the temporaries that killed runs left in `folder` (`_left_behind`), and lock files that no run holds
+    (a run killed while it held one); how many."""
+    folder = Path(folder)
+    here = list(folder.iterdir()) if folder.is_dir() else []
+    stale = [p for p in here if _left_behind(p)]
     for p in stale:
         _remove(p)
-    return len(stale)
+    return len(stale) + sum(locks.remove_if_free(p) for p in here if locks.LOCK_NAME.fullmatch(p.name))
 
 
 def _listing(folder: Path) -> list[str]:
@@ -280,12 +360,14 @@ def _listing(folder: Path) -> list[str]:
 
 
 def check_folder_output(path: str | Path, what: str = "output folder", overwrite: bool = False,
-                        whole: bool = True) -> Path:
+                        whole: bool = True, written_by: str | None = None) -> Path:
     """`path` as a folder a command may write whole, checked before the work: not a file, its parent writable, and
     either missing, empty, or written by an earlier run of ours with nothing added since (its manifest names every
-    file in it; temporaries that killed runs left do not count, `_left_behind`). `overwrite` allows replacing any
+    file in it; the package's temporaries and locks do not count, `is_ours`) and, given `written_by`, by that
+    command (a folder of `ffcgs grasp` results is no `render-depth --out`). `overwrite` allows replacing any
     folder whole. `whole` False: a folder the command fills one file at a time rather than replaces
-    (`add_to_manifest`), which earlier runs may have begun. FfcgsError naming `what` otherwise."""
+    (`add_to_manifest`), which earlier runs may have begun. A link is checked as its target, which is what is
+    written (`target`). FfcgsError naming `what` otherwise."""
     path = Path(path).expanduser()
     if path.exists() and not path.is_dir():
         raise FfcgsError(f"{what} {path} is a file, not a folder")
@@ -293,13 +375,18 @@ def check_folder_output(path: str | Path, what: str = "output folder", overwrite
     if resolved(path) == here or resolved(path) in here.parents:
         raise FfcgsError(f"{what} {path} is the current folder or holds it"
                          f"{', and the folder is replaced whole' if whole else ''}; name a subfolder")
-    check_output(path.parent / f".{path.name or 'folder'}.probe", what)  # parents created, write permission
+    real = target(path)
+    check_output(real.parent / f".{real.name or 'folder'}.probe", what)  # parents created, write permission
     if path.is_dir() and not overwrite:
-        ours = manifest_files(path)
+        fix = "pass --overwrite to replace it whole" if whole else "one that earlier runs of this command filled"
+        m = read_manifest(path)
+        if m is not None and written_by is not None and m["written_by"] != written_by:
+            raise FfcgsError(f"{what} {path} was written by {writer(m)}, not {written_by}; choose another folder"
+                             f"{', or pass --overwrite to replace it whole' if whole else ''}")
+        ours = None if m is None else set(m["files"])
         foreign = [n for n in _listing(path) if n != MANIFEST and (ours is None or n not in ours)
-                   and not _left_behind(path / n)]
+                   and not is_ours(Path(n).name)]
         if foreign:
-            fix = "pass --overwrite to replace it whole" if whole else "one that earlier runs of this command filled"
             raise FfcgsError(f"{what} {path} holds {len(foreign)} file(s) that this command did not write (e.g. "
                              f"{foreign[0]}); choose a new or empty folder, or {fix}")
     return path
@@ -308,7 +395,7 @@ def check_folder_output(path: str | Path, what: str = "output folder", overwrite
 def _swap_folder(tmp: Path, target: Path) -> None:
     old = None
     if target.exists():
-        old = target.with_name(f".{target.name}.{os.getpid()}.old")
+        old = temporary(target, "old")
         os.rename(target, old)
     os.rename(tmp, target)
     if old is not None:
@@ -320,16 +407,15 @@ def write_folder(path: str | Path, written_by: str) -> Iterator[Path]:
     """A fresh hidden folder beside `path` to write the folder's files into; when the block ends without an error
     it gets a manifest (`MANIFEST`: `written_by` and its files) and replaces `path` whole (at the end of the
     `outputs_together` block, for a declared output). On an error or an interrupt it is removed and `path` is left
-    as it was. Check the folder first with `check_folder_output`."""
-    path = Path(path).expanduser()
+    as it was. A link `path` stays a link: the folder it points to is the one replaced. Check the folder first with
+    `check_folder_output`."""
+    path = target(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    shutil.rmtree(tmp, ignore_errors=True)
+    tmp = temporary(path)
     tmp.mkdir()
 
     def manifest(folder: Path) -> None:
-        write_text(folder / MANIFEST, json.dumps({"written_by": written_by, "files": _listing(folder)}, indent=1)
-                   + "\n")
+        write_text(folder / MANIFEST, _manifest_text(written_by, _listing(folder)))
 
     with _staged(tmp, path, manifest, _swap_folder) as staged:
         yield staged

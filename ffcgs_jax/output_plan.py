@@ -8,9 +8,12 @@ Each `ffcgs` command builds a `Plan` from its options (`cli.commands.PLANS`); `P
 - two outputs that resolve to one file, or an output inside a folder output (which is replaced whole);
 - an extension that does not match what is written (`--png x.jpg`, `--out grasps.txt`);
 - an output that cannot be written (`files.check_output`), and a folder output holding files that no run of this
-  command wrote, unless `--overwrite` (`files.check_folder_output`); a "files" output is such a folder that the
-  command fills a file at a time, keeping what earlier runs wrote there.
-`Plan.outputs_together()` then makes the command's outputs land together (`files.outputs_together`).
+  command wrote, or written by another command (its manifest says which), unless `--overwrite`
+  (`files.check_folder_output`); a "files" output is such a folder that the command fills a file at a time,
+  keeping what earlier runs wrote there.
+`Plan.outputs_together()` then makes the command's outputs land together (`files.outputs_together`), holding the
+lock of every input the command updates (`locks.locked`) from before it is read until the outputs are in place: two
+`ffcgs eval g.npz` at once run one after the other, and the second adds its results to the first's.
 """
 
 import contextlib
@@ -18,7 +21,7 @@ import dataclasses
 import os
 from pathlib import Path
 
-from ffcgs_jax import files
+from ffcgs_jax import files, locks
 from ffcgs_jax.errors import FfcgsError
 
 # format -> (what is written, the extensions its name may end in)
@@ -71,9 +74,10 @@ class Plan:
         """The outputs asked for (options left unset write nothing)."""
         return tuple(o for o in self.outputs if o.path is not None)
 
-    def check(self) -> None:
+    def check(self, written_by: str | None = None) -> None:
         """FfcgsError with one line for the first problem (module docstring); the order puts the most telling
-        message first: a collision with an input before an extension, an extension before permissions."""
+        message first: a collision with an input before an extension, an extension before permissions.
+        `written_by` ("ffcgs render-depth"): the command, whose folder outputs may replace only folders it wrote."""
         outs = [(o, files.resolved(o.path)) for o in self.given]
         ins = [(i, files.resolved(i.path)) for i in self.inputs if i.path is not None and _exists(i.path)]
         for o, op in outs:
@@ -109,14 +113,26 @@ class Plan:
             if op in updated:  # the reader of the input speaks first; the write is checked when it happens
                 continue
             if o.format in ("folder", "files"):
-                files.check_folder_output(o.path, o.flag, self.overwrite, whole=o.format == "folder")
+                files.check_folder_output(o.path, o.flag, self.overwrite, whole=o.format == "folder",
+                                          written_by=written_by)
             else:
                 files.check_output(o.path, o.flag)
 
+    @property
+    def updated(self) -> list[Path]:
+        """The outputs that are inputs updated in place (resolved, sorted): files read, then rewritten."""
+        ins = {files.resolved(i.path) for i in self.inputs  # (a missing file: its reader says so, unlocked)
+               if i.updated and i.path is not None and Path(i.path).expanduser().is_file()}
+        return sorted({op for op in (files.resolved(o.path) for o in self.given) if op in ins})
+
     @contextlib.contextmanager
     def outputs_together(self):
-        """The block in which the command writes: its outputs land together at the end, or none of them."""
-        with files.outputs_together([Path(o.path).expanduser() for o in self.given]):
+        """The block in which the command writes: its outputs land together at the end, or none of them; the
+        inputs it updates are locked throughout (sorted, so two commands never wait for each other)."""
+        with contextlib.ExitStack() as stack:
+            for path in self.updated:
+                stack.enter_context(locks.locked(path))
+            stack.enter_context(files.outputs_together([Path(o.path).expanduser() for o in self.given]))
             yield
 
 

@@ -26,7 +26,6 @@ from ffcgs_jax.dataset.config import DatasetConfig
 from ffcgs_jax.errors import FfcgsError
 from ffcgs_jax.geometry.config import SDFConfig
 from ffcgs_jax.output_plan import Input, Output, Plan
-from ffcgs_jax.physics import protocols as physics_protocols
 from ffcgs_jax.physics.config import ALL_PROTOCOLS, PROTOCOLS, PhysicsConfig
 from ffcgs_jax.synthesis.config import GraspConfig
 
@@ -55,7 +54,7 @@ class SdfCmd:
 
 @dataclasses.dataclass(frozen=True)
 class BenchCmd:
-    """Time grasp synthesis on this machine (latency, throughput, compile, CLI start) and write bench/RESULTS.md.
+    """Time grasp synthesis on this machine (latency, throughput, compile, CLI start) and print the report.
 
     Attributes:
         object: built-in name or mesh file; its Gradient-SDF is built first and not timed.
@@ -74,7 +73,8 @@ class BenchCmd:
         cli_start: also time a cold and a warm `ffcgs grasp` in fresh processes.
         whole_object: the mesh whose whole `synthesize` call is timed, from the mesh to ranked grasps, each time as
             if seen for the first time (grid and triangle caches cleared) and with its grid cached; "" = `object`.
-        results: Markdown file to put this machine's block into ("" = print only).
+        results: also put this machine's block into this Markdown file, e.g. bench/RESULTS.md (replaced when
+            run there again); default: print only, so that a bench run never rewrites a tracked file unasked.
         json: also write the report as JSON here.
     """
 
@@ -91,7 +91,7 @@ class BenchCmd:
     backend: str = "default"
     cli_start: bool = True
     whole_object: str = ""
-    results: str = "bench/RESULTS.md"
+    results: str | None = None
     json: str | None = None
 
     def check(self) -> None:
@@ -257,6 +257,13 @@ class GraspCmd:
             raise FfcgsError("--table-z and --bounds belong to --depth (a mesh's table is at its lowest point)")
         if self.depth is not None and self.validate and not self.object:
             raise FfcgsError("--validate with --depth needs --object: the physics test simulates the true mesh")
+        # against the defaults: a value given without --validate would be ignored without a word
+        physics_only = [flag for flag, given in (("--need", self.need != GraspCmd.need),
+                                                 ("--protocol", self.protocol != GraspCmd.protocol)) if given]
+        if physics_only and not self.validate:
+            raise FfcgsError(f"{' and '.join(physics_only)} take{'s' * (len(physics_only) == 1)} effect only with "
+                             "--validate: add --validate to physics-check the grasps, or leave "
+                             f"{'it' if len(physics_only) == 1 else 'them'} out")
         if self.show:
             _needs("viser", "--show needs viser for the 3D view: pip install -e \".[viz]\" (or pip install viser)")
 
@@ -437,9 +444,12 @@ class EvalCmd:
 def run_eval(cmd: EvalCmd) -> None:
     from ffcgs_jax.geometry import mesh_io, objects
     from ffcgs_jax.hand import spec as hand_spec
+    from ffcgs_jax.physics import protocols as physics_protocols  # scipy.stats: 0.7 s of every command's start
     from ffcgs_jax.physics import runner as physics
     from ffcgs_jax.synthesis import grasp_io
 
+    # read under the file's lock when it is updated in place (`Plan.outputs_together` locks an updated input until
+    # the results land): a second eval of the file waits here and adds to the first's results, not over them
     data = grasp_io.load_npz(cmd.grasps)
     missing = [k for k in ("wrist_pose", "q") if k not in data]
     if missing:

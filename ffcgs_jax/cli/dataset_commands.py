@@ -22,7 +22,8 @@ class DatasetInfoCmd:
             shapes are regenerated without it.
         per_object: grasps drawn per object.
         json: also write the statistics to this JSON file.
-        overwrite: replace the `--png` folder whole even when it holds files that no `dataset info` run wrote.
+        overwrite: replace the `--png` folder whole even when it holds files that no `dataset info` run wrote,
+            or another command wrote it (its manifest says which).
     """
 
     dataset: tyro.conf.Positional[str] = tyro.MISSING
@@ -45,7 +46,8 @@ class DatasetExportCmd:
         dataset: the .mcap file `ffcgs dataset build` wrote.
         out: FILE.npz (the records stacked; grasp_start and grasp_record index each record's grasps) or a folder
             (one <record_id>.npz per record, replacing the folder whole). Fields: ffcgs_jax/dataset/export.py.
-        overwrite: replace an `--out` folder whole even when it holds files that no `dataset export` run wrote.
+        overwrite: replace an `--out` folder whole even when it holds files that no `dataset export` run wrote,
+            or another command wrote it (its manifest says which).
     """
 
     dataset: tyro.conf.Positional[str] = tyro.MISSING

@@ -31,9 +31,10 @@ class RenderDepthCmd:
         seed: noise seed.
         scale: multiplies the object's coordinates (0.001 for millimetre meshes).
         png: also draw the depth images side by side to this PNG.
-        overwrite: replace `out` whole even when it holds files that no `render-depth` run wrote (without it such a
-            folder is refused; a folder an earlier run wrote is always replaced whole, so no stale frame or mask
-            of that run stays behind).
+        overwrite: replace `out` whole even when it holds files that no `render-depth` run wrote, or another
+            command wrote it, such as a folder of `ffcgs grasp` results (without it such a folder is refused; a
+            folder an earlier render-depth run wrote is always replaced whole, so no stale frame or mask of that run
+            stays behind). A link `out` stays a link: the folder it points to is replaced.
     """
 
     object: tyro.conf.Positional[str] = tyro.MISSING

@@ -2,9 +2,12 @@
 
 Each object's `<name>.npz` lands whole as soon as that object is done (named in the folder's manifest first,
 `files.add_to_manifest`, then written atomically), so an interrupted run leaves complete files only. Each file
-records `run_key`: a hash of every option that shapes its content (all but the object list and `--out`), of the
-package version and of the mesh file's bytes. Running the command again skips the objects whose file holds the
-same key, and does again those written with other settings or from a mesh that changed since.
+records `run_key`: a hash of contents, not of paths (`settings_text`, `run_key`): every option that shapes the file
+(all but the object list and `--out`), the package version, the hand (its spec and compiled model, so an MJCF or
+mesh it names counts too), the weights files the synthesis reads (the CVAE sampler's and the success predictor's,
+given or shipped), and the object's geometry as loaded and scaled (`mesh_io.mesh_sha256`). Running the command
+again skips the objects whose file holds the same key, and does again those written with other settings, another
+hand or weights, or from a mesh that changed since, even when edited in place or copied over.
 """
 
 import contextlib
@@ -13,6 +16,7 @@ import hashlib
 import json
 import sys
 import time
+import warnings
 from collections.abc import Callable
 from pathlib import Path
 
@@ -38,11 +42,10 @@ def run(cmd, validate: Callable) -> int:
 
     objects = expand_objects(cmd.object)
     out = Path(cmd.out_path).expanduser()
-    settings = _settings(cmd)
-    keys = {o.name: run_key(settings, o.source) for o in objects}
+    settings = settings_text(cmd)
     files.manifest_by(out, WRITTEN_BY)
     files.remove_left_behind(out)
-    done, redo = _written(out, keys)
+    done, redo = _written(out, objects, settings, cmd.grasp.sdf.scale)
     todo = [o for o in objects if o.name not in done]
     if done or redo:
         print(f"{cmd.out_path}: {len(done)} of {len(objects)} objects already written with these settings, skipped"
@@ -66,8 +69,8 @@ def run(cmd, validate: Callable) -> int:
                     failed.append((r.name, error))
                     rows[r.name] = _row(None, r.seconds, "failed")
                 else:
-                    gs.arrays.update(mesh_io.identity(r.source, cmd.grasp.sdf.scale, r.mesh),
-                                     run_key=np.array(keys[r.name]))
+                    identity = mesh_io.identity(r.source, cmd.grasp.sdf.scale, r.mesh)
+                    gs.arrays.update(identity, run_key=np.array(run_key(settings, str(identity["object_sha256"]))))
                     out.mkdir(parents=True, exist_ok=True)
                     files.add_to_manifest(out, f"{r.name}.npz", WRITTEN_BY)
                     grasp_io.save_npz(gs, out / f"{r.name}.npz")
@@ -83,47 +86,99 @@ def run(cmd, validate: Callable) -> int:
     return 1 if failed else 0
 
 
-def _settings(cmd) -> str:
+def settings_text(cmd) -> str:
     """What shapes an object's grasp file besides its mesh, as text: every option but the object list and --out
-    (the physics ones only with --validate), and the package version."""
-    d = dataclasses.asdict(dataclasses.replace(cmd, object=(), out=None))
+    (the physics ones only with --validate), the package version, and the contents (never the paths) of the hand
+    (`hand_sha256`) and of the weights files the synthesis reads (`weights_sha256`). FfcgsError when the hand
+    cannot be loaded."""
+    from ffcgs_jax.hand.spec import load_spec
+
+    spec = load_spec(cmd.hand)
+    d = dataclasses.asdict(dataclasses.replace(cmd, object=(), out=None, hand=""))
     if not cmd.validate:
         for k in ("protocol", "need", "physics"):
             d.pop(k)
-    return json.dumps({"version": __version__, **d}, sort_keys=True, default=str)
+    d["grasp"]["sampling"].pop("weights")  # paths: their files' contents stand in below
+    d["grasp"].pop("evaluator")
+    return json.dumps({"version": __version__, **d, "hand_sha256": hand_sha256(spec),
+                       "weights_sha256": weights_sha256(cmd.grasp, spec.name)}, sort_keys=True, default=str)
 
 
-def run_key(settings: str, source: str) -> str:
-    """The hash of `settings` and of the bytes of the mesh `source` (a built-in name or a file); "" when the file
-    cannot be read (its load fails, and says why)."""
-    from ffcgs_jax.geometry import objects
+def hand_sha256(spec) -> str:
+    """SHA-256 of a hand as the synthesis sees it: the spec's fields (not where its MJCF lies) and the compiled
+    MuJoCo model (`mj_saveModel`'s bytes: every body, joint, geom and mesh the MJCF and its includes define)."""
+    import mujoco
 
-    h = hashlib.sha256(settings.encode())
-    try:
-        with open(objects.path(source) if source in objects.names() else Path(source), "rb") as f:
-            for block in iter(lambda: f.read(1 << 20), b""):
-                h.update(block)
-    except OSError:
-        return ""
+    fields = {k: v for k, v in dataclasses.asdict(spec).items() if k != "mjcf_path"}
+    m = spec.mj_model()
+    model = np.zeros(mujoco.mj_sizeModel(m), np.uint8)
+    mujoco.mj_saveModel(m, None, model)
+    h = hashlib.sha256(json.dumps(fields, sort_keys=True).encode())
+    h.update(model.tobytes())
     return h.hexdigest()
 
 
-def _written(out: Path, keys: dict[str, str]) -> tuple[dict[str, dict], list[str]]:
+def weights_sha256(cfg, hand_name: str) -> dict[str, str]:
+    """{"cvae": ..., "evaluator": ...}: SHA-256 of each weights file `cfg` (a `GraspConfig`) reads for hand
+    `hand_name`, the one given or the one shipped; "none" where there is none (a sampler other than the CVAE, no
+    shipped file), "missing" for a given file that is not there (the synthesis then says so)."""
+    from ffcgs_jax.learning.weights import shipped_evaluator, shipped_weights
+
+    def digest(given: str, shipped: Path) -> str:
+        path = Path(given).expanduser() if given else shipped
+        if not path.is_file():
+            return "missing" if given else "none"
+        h = hashlib.sha256()
+        with open(path, "rb") as f:
+            for block in iter(lambda: f.read(1 << 20), b""):
+                h.update(block)
+        return h.hexdigest()
+
+    cvae = cfg.sampler in ("auto", "cvae")
+    return {"cvae": digest(cfg.sampling.weights, shipped_weights(hand_name)) if cvae else "none",
+            "evaluator": digest(cfg.evaluator, shipped_evaluator(hand_name))}
+
+
+def run_key(settings: str, mesh_sha256: str) -> str:
+    """The hash of `settings` (`settings_text`) and of the object's geometry `mesh_sha256` (`mesh_io.mesh_sha256`
+    of the mesh as loaded and scaled); "" when the geometry is unknown ("": the mesh does not load)."""
+    if not mesh_sha256:
+        return ""
+    return hashlib.sha256(f"{settings}\n{mesh_sha256}".encode()).hexdigest()
+
+
+def mesh_key(source: str, scale: float) -> str:
+    """`mesh_io.mesh_sha256` of the mesh `source` (a built-in name or a file) loaded with `scale`, as the synthesis
+    loads it; "" when it does not load (its synthesis then fails, and says why). Its warnings are left to the
+    synthesis's load, which says them once."""
+    from ffcgs_jax.geometry import mesh_io
+
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            return mesh_io.mesh_sha256(mesh_io.load_mesh(source, scale=scale))
+    except Exception:  # noqa: BLE001 - any failure to read the caller's file: the object is done again
+        return ""
+
+
+def _written(out: Path, objects, settings: str, scale: float) -> tuple[dict[str, dict], list[str]]:
     """({name: table row} of the objects whose file in `out` holds their key, [names whose file holds another]);
-    a file that cannot be read counts as another (it is written again)."""
+    a file that cannot be read counts as another (it is written again). Only the objects with a file there are
+    loaded, for their geometry."""
     done, redo = {}, []
-    for name, key in keys.items():
-        path = out / f"{name}.npz"
+    for o in objects:
+        path = out / f"{o.name}.npz"
         if not path.is_file():
             continue
         try:
             arrays = files.read_npz(path, "grasp file", "grasp .npz")
         except FfcgsError:
             arrays = {}
-        if key and str(arrays.get("run_key", "")) == key:
-            done[name] = _row(arrays, None, "skipped")
+        key = run_key(settings, mesh_key(o.source, scale)) if "run_key" in arrays else ""
+        if key and str(arrays["run_key"]) == key:
+            done[o.name] = _row(arrays, None, "skipped")
         else:
-            redo.append(name)
+            redo.append(o.name)
     return done, redo
 
 

@@ -5,12 +5,15 @@ Every subcommand takes `--config FILE.toml` (sections as in `configs/`) and then
 """
 
 import os
+import re
 import signal
 import sys
+import textwrap
 import threading
 import warnings
 
 from ffcgs_jax import files
+from ffcgs_jax.cli import smoke
 from ffcgs_jax.cli.commands import COMMANDS, PLANS
 from ffcgs_jax.config import with_overrides
 from ffcgs_jax.errors import FfcgsError
@@ -21,18 +24,39 @@ _PREFIXED = {"dataset build"}
 
 
 def _usage() -> str:
+    from ffcgs_jax.cli import train_command
+
     lines = ["usage: ffcgs COMMAND [--config FILE.toml] [options]", "", "commands:"]
-    for name, (cls, _) in COMMANDS.items():
-        lines.append(f"  {name:<14} {(cls.__doc__ or '').strip().splitlines()[0]}")
-    lines.append(f"  {'train':<14} {_train_summary()}")
+    docs = {name: cls.__doc__ for name, (cls, _) in COMMANDS.items()} | {"train": train_command.__doc__}
+    for name, doc in docs.items():
+        lines += textwrap.wrap(description(doc), 100, initial_indent=f"  {name:<15}", subsequent_indent=" " * 17,
+                               break_on_hyphens=False)
     lines += ["", "`ffcgs COMMAND --help` lists a command's options."]
     return "\n".join(lines)
 
 
-def _train_summary() -> str:
-    from ffcgs_jax.cli import train_command
+def first_sentence(doc: str | None) -> str:
+    """A docstring's first sentence, over however many lines it runs, without a leading "`ffcgs NAME`: "."""
+    text = " ".join((doc or "").strip().split("\n\n")[0].split())
+    text = re.sub(r"^`ffcgs [\w -]+`: (\w)", lambda m: m.group(1).upper(), text)
+    end = re.search(r"[.!?](?=\s+[A-Z])", text)
+    return text[:end.end()] if end else text
 
-    return (train_command.__doc__ or "").strip().splitlines()[0]
+
+def description(doc: str | None) -> str:
+    """A command's line in `ffcgs --help`: its docstring's first sentence, whole; one of over 120 characters ends
+    at its first colon outside brackets and quotes, where a complete phrase ends, so the list stays a list."""
+    text = first_sentence(doc)
+    if len(text) <= 120:
+        return text
+    depth, quoted = 0, False
+    for i, c in enumerate(text):
+        depth += c in "([{"
+        depth -= c in ")]}"
+        quoted ^= c in "`\""
+        if c == ":" and depth == 0 and not quoted:
+            return text[:i] + "."
+    return text
 
 
 def parse(argv: list[str]):
@@ -79,6 +103,27 @@ def _object_flag_as_positional(argv: list[str]) -> list[str]:
     return out
 
 
+def grasp_line(cmd) -> str:
+    """The line `ffcgs grasp` starts with: what it will do, from the parsed options alone."""
+    what = ", ".join(cmd.object) if cmd.object else None
+    if cmd.depth is not None:
+        what = f"depth frames {cmd.depth}" + (f" (true object {what})" if what else "")
+    poses = f"the wrist poses of {cmd.poses}" if cmd.poses else f"{cmd.grasp.n} grasps"
+    each = " each" if cmd.many else ""
+    checked = f", physics-checked ({cmd.protocol})" if cmd.validate else ""
+    return f"ffcgs grasp: {what}, hand {cmd.hand}, {poses}{each}{checked}"
+
+
+_FIRST_LINES = {"grasp": grasp_line}
+
+
+def _is_terminal(stream) -> bool:
+    try:
+        return stream.isatty()
+    except (AttributeError, ValueError):  # a replaced or closed stderr
+        return False
+
+
 def _one_line_warning(message, category, filename, lineno, file=None, line=None):
     print(f"ffcgs: warning: {message}", file=sys.stderr if file is None else file)
 
@@ -111,12 +156,23 @@ def main(argv: list[str] | None = None) -> int:
 def _run(argv: list[str]) -> int:
     try:
         name, fn, cmd = parse_command(argv)
+        cmd = smoke.scaled(name, cmd)  # FFCGS_SMOKE: README's commands as written, in seconds (CI)
         plan = PLANS[name](cmd)
-        plan.check()  # before anything is loaded or compiled: no output over an input or another output
-        from ffcgs_jax.runtime import jax_cache  # imports JAX: not before parsing, so --help stays quick
+        # before anything is loaded or compiled: no output over an input or another output, no folder of another
+        # command replaced
+        plan.check(f"ffcgs {name}")
+        # What the command does, at once on a terminal (before JAX and the meshes load: a cold start is minutes of
+        # compile). Into a log or a pipe it comes with the first compile's line instead, so that bad input found
+        # while loading stays one line there.
+        first = _FIRST_LINES[name](cmd) if name in _FIRST_LINES else None
+        if first and _is_terminal(sys.stderr):
+            print(first, file=sys.stderr, flush=True)
+            first = None
+        from ffcgs_jax.runtime import jax_cache, progress  # imports JAX: not before parsing, so --help stays quick
 
         jax_cache.enable()  # a second run loads its executables from disk (FFCGS_JAX_CACHE=off: compile every time)
-        with plan.outputs_together():  # all of the command's outputs, or none
+        # the large compiles say what compiles, for how long so far, and an estimate (`runtime.progress`)
+        with plan.outputs_together(), progress.shown(headline=first):  # all of the command's outputs, or none
             status = fn(cmd)
     except FfcgsError as e:
         print(f"ffcgs: error: {e}", file=sys.stderr)

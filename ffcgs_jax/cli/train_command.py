@@ -23,6 +23,7 @@ from pathlib import Path
 import numpy as np
 
 from ffcgs_jax import files
+from ffcgs_jax.cli import smoke
 from ffcgs_jax.config import coerce, check_all, split_config_arg, with_overrides
 from ffcgs_jax.errors import FfcgsError
 from ffcgs_jax.learning.config import EvaluatorTrainConfig, TrainConfig
@@ -52,6 +53,19 @@ def split_model(argv: list[str]) -> tuple[str, list[str]]:
         rest.append(a)
         i += 1
     return model, rest
+
+
+# the network section only the other model's config has, and that model's --model name
+_OTHER_SECTION = {"sampler": ("net", "evaluator"), "evaluator": ("model", "sampler")}
+
+
+def other_model_hint(message: str, model: str) -> str:
+    """`message` with a hint when it refuses the network section of the other model's config (a run folder's
+    config.toml of `--model evaluator` given without it): the section is right, the model is not."""
+    section, other = _OTHER_SECTION[model]
+    if message.startswith(f"unknown config key(s) {section};"):
+        return f"{message} ([{section}] is the {other}'s section: add --model {other})"
+    return message
 
 
 def split_args(argv: list[str]) -> tuple[str | None, list[str], list[str]]:
@@ -211,10 +225,14 @@ def main(argv: list[str] | None = None, prog: str = "ffcgs train", name: str = "
     try:
         model, argv = split_model(argv)
         path, specs, rest = split_args(argv)
-        cfg = with_overrides(MODELS[model], rest if path is None else ["--config", path, *rest], prog,
-                             keep_prefixes=True, description=__doc__)
+        try:
+            cfg = with_overrides(MODELS[model], rest if path is None else ["--config", path, *rest], prog,
+                                 keep_prefixes=True, description=__doc__)
+        except FfcgsError as e:
+            raise FfcgsError(other_model_hint(str(e), model)) from None
+        cfg = smoke.scaled("train", cfg)  # FFCGS_SMOKE: one epoch, a sweep's first point
         if specs:
-            run_sweep(cfg, parse_sweep(cfg, specs))
+            run_sweep(cfg, smoke.sweep(parse_sweep(cfg, specs)))
         else:
             summary = run_one(cfg)
             print(json.dumps({k: v for k, v in summary.items() if not isinstance(v, list)}, indent=1))

@@ -6,7 +6,7 @@ Resumable build (an MCAP cannot be appended to once finished):
     * `init_parts(parts_dir, config, extra)` creates `parts_dir` (by convention `OUT.parts/`, see `parts_dir_for`)
       and writes `config.json` there; on a resumed build it checks the config is the same (else FfcgsError).
     * `write_part(parts_dir, record)` writes the record as its own small MCAP `<record_id>.mcap` (topics /sdf and
-      /grasps) to a temporary file `.<record_id>.mcap.<pid>.tmp`, fsyncs it and renames it into place (atomic), so
+      /grasps) to a temporary file (`files.temporary`: hidden, marked as ours), fsyncs it and renames it into place, so
       a crash leaves either a complete part or a stray temporary file, never a half part under the final name.
       Writing a record that already has a part is a no-op if the bytes are identical, an FfcgsError otherwise.
     * `done_records(parts_dir)` lists the ids of finished parts (temporary files, and files without the MCAP magic
@@ -248,12 +248,15 @@ def merge(parts_dir: str | Path, out_path: str | Path, expected: Iterable[str] |
     """Write the single dataset MCAP from the finished parts, in record-id order (atomic; deterministic bytes).
 
     `expected` (record ids), if given, must equal the finished set: a missing or unexpected record is an error.
-    Every part is decoded and checked before its payloads are copied."""
+    Every part is decoded and checked before its payloads are copied; where the config's extra lists the build's
+    objects with their `mesh_sha256` (`dataset build` does), a part of another object or geometry (from another
+    build: a foreign part copied in) is refused, naming the part and the object."""
     parts_dir, out_path = Path(parts_dir), Path(out_path)
     cfg = parts_dir / CONFIG_NAME
     if not cfg.is_file():
         raise FfcgsError(f"{parts_dir} is not a parts directory (no {CONFIG_NAME})")
     config_text = cfg.read_text()
+    hashes = build_objects(config_text, cfg)
     bad = [p.name for p in parts_dir.iterdir()
            if p.name.endswith(PART_SUFFIX) and not p.name.startswith(".") and not _is_complete(p)]
     if bad:
@@ -279,6 +282,8 @@ def merge(parts_dir: str | Path, out_path: str | Path, expected: Iterable[str] |
             rec = _decode_record(part, sdf, grasps, i)
             if rec.record_id != rid:
                 raise FfcgsError(f"part {part} holds record {rec.record_id!r}, not {rid!r}")
+            if hashes is not None and hashes.get(rec.object_name) != rec.mesh_sha256:
+                raise FfcgsError(foreign_part(part, rec, hashes))
             current = sdf.encoding == MESSAGE_ENCODINGS["/sdf"] and grasps.encoding == MESSAGE_ENCODINGS["/grasps"]
             sdf_data, grasp_data = (sdf.data, grasps.data) if current else _messages(rec)
             w.add_message(ch["/sdf"], log_time=i, publish_time=i, sequence=i, data=sdf_data)
@@ -287,6 +292,29 @@ def merge(parts_dir: str | Path, out_path: str | Path, expected: Iterable[str] |
 
     files.atomic_write(out_path, write)
     return out_path
+
+
+def build_objects(config_text: str, where: Path) -> dict[str, str] | None:
+    """{object name: mesh_sha256} of the objects a parts directory's config lists (`extra.objects`), or None for
+    a config without such a list (a writer used without `dataset build`, or a build older than the hashes)."""
+    try:
+        objects = json.loads(config_text).get("extra", {}).get("objects")
+    except (ValueError, AttributeError) as e:
+        raise FfcgsError(f"{where} does not describe a build ({type(e).__name__}: {e})") from None
+    if not isinstance(objects, list) or not all(isinstance(o, dict) and isinstance(o.get("name"), str) and
+                                                isinstance(o.get("mesh_sha256"), str) for o in objects):
+        return None
+    return {o["name"]: o["mesh_sha256"] for o in objects}
+
+
+def foreign_part(part: Path, rec: Record, hashes: dict[str, str]) -> str:
+    """The line that refuses a part of another build."""
+    if rec.object_name not in hashes:
+        return (f"part {part} holds object {rec.object_name!r}, which this build does not have: it comes from "
+                f"another build; remove it and merge again")
+    return (f"part {part} holds object {rec.object_name!r} with mesh_sha256 {rec.mesh_sha256[:12]}..., but this "
+            f"build's {rec.object_name!r} has {hashes[rec.object_name][:12]}...: it comes from another build (another "
+            f"mesh); remove it and rerun the build, which makes it again")
 
 
 class DatasetWriter:

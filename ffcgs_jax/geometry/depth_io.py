@@ -21,6 +21,7 @@ only.
 
 import json
 import pathlib
+import warnings
 from typing import NamedTuple
 
 import numpy as np
@@ -205,11 +206,33 @@ def _listed(folder: pathlib.Path) -> list[pathlib.Path]:
     return [p for p in folder.iterdir() if p.is_file() and (named is None or p.name in named)]
 
 
+def _say_unlisted(folder: pathlib.Path) -> None:
+    """One warning line when the folder's manifest leaves files out (masks added by hand to a rendered folder):
+    they are not read, and the user is told which manifest decides and how to have them read."""
+    ignored = files.unlisted(folder)
+    if ignored:
+        warnings.warn(f"depth folder {folder} holds {len(ignored)} file(s) that its manifest "
+                      f"{folder / files.MANIFEST} does not name (e.g. {ignored[0]}); they are ignored (delete the "
+                      "manifest to read every file there)", stacklevel=3)
+
+
+def _hidden(folder: pathlib.Path, name: str) -> str:
+    """The words for a file `name` that exists in `folder` but that its manifest leaves out, for an error that would
+    otherwise say it is missing; "" when it does not exist or there is no manifest."""
+    named = files.manifest_files(folder)
+    if named is None or name in named or not (folder / name).is_file():
+        return ""
+    return (f" ({folder / name} exists, but the folder's manifest {folder / files.MANIFEST} does not name it, so it "
+            "is not read; delete the manifest to read every file there)")
+
+
 def _depth_files(folder: pathlib.Path) -> list[pathlib.Path]:
     found = sorted(p for p in _listed(folder) if p.suffix.lower() in (".png", ".npy")
                    and not (p.suffix.lower() == ".png" and p.stem.endswith(_MASK)))
     if not found:
-        raise FfcgsError(f"depth folder {folder} has no depth images (*.png or *.npy besides *{_MASK}.png)")
+        named = files.manifest_files(folder)
+        why = "" if named is None else f" that its manifest {folder / files.MANIFEST} names"
+        raise FfcgsError(f"depth folder {folder} has no depth images{why} (*.png or *.npy besides *{_MASK}.png)")
     twins = files.duplicate_stems(found)
     if twins:
         raise FfcgsError(f"depth folder {folder} has two depth images named {twins[0]} (.png and .npy); keep one")
@@ -240,6 +263,7 @@ def _read_folder(folder: pathlib.Path) -> Frames:
         raise FfcgsError(f"depth folder {folder} is empty: it holds no depth frames (camera.json, poses.json and "
                          "depth images)")
     cam = _read_camera(folder / "camera.json")
+    _say_unlisted(folder)
     images = _depth_files(folder)
     poses_path = folder / "poses.json"
     poses = _read_json(poses_path)
@@ -249,7 +273,8 @@ def _read_folder(folder: pathlib.Path) -> Frames:
             raise FfcgsError(f"{poses_path} has no pose for depth image {name}")
     extra = sorted(set(poses) - set(names))
     if extra:
-        raise FfcgsError(f"{poses_path} has a pose for {extra[0]}, but {folder} has no such depth image")
+        raise FfcgsError(f"{poses_path} has a pose for {extra[0]}, but {folder} has no such depth image"
+                         f"{_hidden(folder, extra[0])}")
     mats = []
     for name in names:
         try:
@@ -262,11 +287,13 @@ def _read_folder(folder: pathlib.Path) -> Frames:
     stems = [p.stem for p in images]
     orphan = sorted(set(mask_files) - set(stems))
     if orphan:
-        raise FfcgsError(f"mask {mask_files[orphan[0]]} has no depth image {orphan[0]}.png or {orphan[0]}.npy")
+        raise FfcgsError(f"mask {mask_files[orphan[0]]} has no depth image {orphan[0]}.png or {orphan[0]}.npy"
+                         f"{_hidden(folder, orphan[0] + '.png') or _hidden(folder, orphan[0] + '.npy')}")
     if mask_files and len(mask_files) != len(stems):
         lacking = next(s for s in stems if s not in mask_files)
         raise FfcgsError(f"depth folder {folder} has masks for {len(mask_files)} of {len(stems)} images; "
-                         f"{lacking}{_MASK}.png is missing (give a mask for every image or none)")
+                         f"{lacking}{_MASK}.png is missing (give a mask for every image or none)"
+                         f"{_hidden(folder, f'{lacking}{_MASK}.png')}")
     depth = np.stack([_read_depth(p, cam) for p in images])
     mask = None
     if mask_files:

@@ -19,7 +19,8 @@ Everything else (the other parts, the stray readings) becomes background, whose 
 Deterministic (no random draws) and cheap: 5 frames of 640 x 480 take 15 ms for the parts and 85 ms in all
 (the mask's readings included) on a busy 2-core CPU (tests/geometry/test_depth_scene.py bounds it at 200 ms).
 
-Precedence: object masks given with the frames are the user's own isolation, so `isolate` is not run on them;
+Precedence: object masks given with the frames are the user's own isolation, so `isolate` is not run on them (only
+the size check: `check_masked`);
 an explicit workspace box (`bounds`) keeps its meaning (readings outside are background, the grid is the cube
 around it) and the isolation runs inside it, removing the parts within the box that are not the object.
 """
@@ -180,6 +181,35 @@ def isolate(frames: depth_io.Frames, plane: Float[np.ndarray, " 4"],
     _warn_implausible(iso)
     cells = np.floor(kept / CELL).astype(np.int64)
     return frames._replace(mask=_pixel_mask(keep.reshape(n, len(rows), len(cols)), s, frames, cells)), iso
+
+
+def check_masked(frames: depth_io.Frames, plane: Float[np.ndarray, " 4"],
+                 bounds: Float[np.ndarray, "2 3"] | None = None) -> Float[np.ndarray, " 3"] | None:
+    """The size of the object that the frames' own masks hold (x and y of its readings, z from the table to its
+    top, metres, from a subsample as `isolate` takes; the outermost 0.5 % each way left out as flying pixels), with
+    the warning `isolate` gives for an implausible part: masks are the user's isolation, and a mask that holds a
+    49 cm slab deserves the same word as a part isolated at that size. None (and no warning) when fewer than
+    `PART_POINTS` sampled readings lie above the table (fusion then says what is wrong)."""
+    n, h, w = frames.depth.shape
+    s = max(1, math.ceil(math.sqrt(n * h * w / _SAMPLE)))
+    N, R, C = (a.ravel() for a in np.meshgrid(np.arange(n), np.arange(s // 2, h, s), np.arange(s // 2, w, s),
+                                              indexing="ij"))
+    p = depth_io.pixel_points(frames, N, R, C)
+    height = np.where(np.isfinite(p[:, 0]), p @ plane[:3] + plane[3], np.nan)
+    keep = depth_io.object_mask(frames)[N, R, C] & (height >= depth_io.TABLE_BAND)  # NaN compares False
+    if bounds is not None:
+        keep &= ((p >= bounds[0]) & (p <= bounds[1])).all(1)
+    if keep.sum() < PART_POINTS:
+        return None
+    lo, hi = np.quantile(p[keep, :2], [0.005, 0.995], axis=0)
+    extents = np.append(hi - lo, np.quantile(height[keep], 0.995))
+    size = " x ".join(f"{100 * e:.1f}" for e in extents)
+    why = f"wider than {100 * MAX_SIZE:g} cm" if extents.max() > MAX_SIZE else \
+        f"smaller than {100 * MIN_SIZE:g} cm" if extents.max() < MIN_SIZE else ""
+    if why:
+        warnings.warn(f"the frames' masks hold an object of {size} cm, {why}: not a graspable object? (check the "
+                      "masks)", stacklevel=3)
+    return extents
 
 
 def _pixel_mask(samples: np.ndarray, s: int, frames: depth_io.Frames, cells: np.ndarray) -> np.ndarray:

@@ -85,7 +85,8 @@ def from_depth(source: str | pathlib.Path | depth_io.Frames, res: int = 32, tabl
         FfcgsError with one line: unreadable frames, no table found (give table_z), nothing left on the object.
 
     Warns:
-        when the isolated part is implausible for a graspable object (`depth_isolate.isolate`).
+        when the isolated part, or the object the masks hold, is implausible for a graspable object
+        (`depth_isolate.isolate`, `depth_isolate.check_masked`).
     """
     frames = depth_io.load_frames(source) if not isinstance(source, depth_io.Frames) else \
         depth_io.check_frames(source)
@@ -105,6 +106,8 @@ def from_depth(source: str | pathlib.Path | depth_io.Frames, res: int = 32, tabl
     iso = None
     if isolate and not masks_given:
         frames, iso = depth_isolate.isolate(frames, plane, bounds)
+    elif masks_given:
+        depth_isolate.check_masked(frames, plane, bounds)
     try:
         grid = tsdf.fuse(frames, res, trunc_voxels, bounds, table_z, margin, min_margin,
                          crop=None if iso is None else iso.box)

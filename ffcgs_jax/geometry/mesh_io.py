@@ -18,6 +18,7 @@ from ffcgs_jax.files import check_file
 FORMATS = ("obj", "stl", "ply", "off", "glb", "gltf")  # mesh formats trimesh reads that we accept
 MM_EXTENT = 2.0  # metres: a larger object is most likely in millimetres
 TINY_EXTENT = 0.005  # metres: a smaller object is most likely scaled wrongly (no SVH fingertip grasps a 5 mm object)
+SCALED_EXTENT = (1e-6, 1e6)  # metres: a scale that makes a mesh smaller or larger than this is refused
 _FLAT = 1e-6  # a mesh thinner than this fraction of its size in some direction has no volume
 
 
@@ -37,7 +38,8 @@ def load_mesh(source: str | pathlib.Path, scale: float = 1.0) -> trimesh.Trimesh
 
     Raises:
         FfcgsError: missing file, unsupported or unreadable format, no triangles (point cloud, path, empty file),
-            NaN or inf coordinates, degenerate geometry (all faces of zero area, or flat), or scale <= 0.
+            NaN or inf coordinates, degenerate geometry (all faces of zero area, or flat), scale <= 0, or a scale
+            that makes the mesh smaller than a micrometre or larger than 1000 km (`SCALED_EXTENT`).
     """
     if not (isinstance(scale, (int, float)) and np.isfinite(scale) and scale > 0):
         raise FfcgsError(f"scale must be a finite number > 0, got {scale!r}")
@@ -54,6 +56,12 @@ def load_mesh(source: str | pathlib.Path, scale: float = 1.0) -> trimesh.Trimesh
         raise FfcgsError(f"mesh {name} has {bad} vertices with NaN or inf coordinates")
     if faces.min() < 0 or faces.max() >= len(verts):
         raise FfcgsError(f"mesh {name} has faces that index missing vertices")
+    raw = float(np.ptp(verts[np.unique(faces)], axis=0).max())
+    if scale != 1 and raw > 0 and not SCALED_EXTENT[0] <= raw * scale <= SCALED_EXTENT[1]:
+        # the scale, not the file, is wrong: past these sizes areas and volumes under- or overflow, and the mesh
+        # would be refused as degenerate
+        raise FfcgsError(f"scale {scale:g} (--scale) makes mesh {name} {raw * scale:.3g} m across ({raw:.3g} "
+                         f"unscaled); a mesh in metres needs scale 1, one in millimetres 0.001")
 
     mesh = trimesh.Trimesh(vertices=verts * float(scale), faces=faces, process=True)
     used = mesh.vertices[np.unique(mesh.faces)]

@@ -17,6 +17,7 @@ import json
 import math
 import time
 from collections.abc import Callable
+from contextlib import nullcontext
 from functools import partial
 from pathlib import Path
 
@@ -38,6 +39,7 @@ from ffcgs_jax.learning.config import EvaluatorOptimConfig, EvaluatorTrainConfig
 from ffcgs_jax.learning.train import dataset_hand, run_folder, truncate_log
 from ffcgs_jax.learning.weights import EVALUATOR_FORMAT
 from ffcgs_jax.runtime.fixed_shapes import pad_rows
+from ffcgs_jax.runtime.progress import compiling
 from ffcgs_jax.synthesis.optim import AdamState, adam_init, adam_update
 from ffcgs_jax.version import __version__
 
@@ -148,15 +150,18 @@ def train(cfg: EvaluatorTrainConfig, progress: bool = True, until_epoch: int | N
     net, opt, norm = jax.tree.map(jnp.asarray, (net, opt, norm))
     x, y = jnp.asarray(data.x), jnp.asarray(data.y)
     last = {}
+    # drawn from its first update on (`delay`): before it, the first epoch's compile has its own line
     bar = tqdm(total=o.epochs, initial=start, desc=f"train {out.name}", unit="epoch", disable=not progress,
-               dynamic_ncols=True)
+               dynamic_ncols=True, delay=1e-3)
     t0 = time.perf_counter()
     with open(log_path, "a") as log:
         for epoch in range(start, o.epochs if until_epoch is None else min(until_epoch, o.epochs)):
             rng = np.random.default_rng([cfg.seed, epoch])
             idx = train_rows[rng.permutation(len(train_rows))[: steps * o.batch]].reshape(steps, o.batch)
-            net, opt, losses = train_steps(net, opt, norm, x, y, jnp.asarray(idx), jnp.asarray(epoch * steps),
-                                           jnp.asarray(total), optim=o)
+            # the first call compiles: a ticker says so; later epochs only dispatch
+            with compiling("the predictor's training step", show=progress) if epoch == start else nullcontext():
+                net, opt, losses = train_steps(net, opt, norm, x, y, jnp.asarray(idx), jnp.asarray(epoch * steps),
+                                               jnp.asarray(total), optim=o)
             losses = np.asarray(losses)
             if not np.isfinite(losses).all():
                 raise FfcgsError(f"the loss became non-finite in epoch {epoch}; lower optim.lr")

@@ -16,6 +16,7 @@ same parameters as an uninterrupted one.
 import dataclasses
 import json
 import time
+from contextlib import nullcontext
 from functools import partial
 from pathlib import Path
 
@@ -34,6 +35,7 @@ from ffcgs_jax.learning import checkpoint, cvae
 from ffcgs_jax.learning import data as cvae_data
 from ffcgs_jax.learning.config import KLConfig, TrainConfig, TrainOptimConfig, to_toml
 from ffcgs_jax.learning.weights import WEIGHTS_FORMAT
+from ffcgs_jax.runtime.progress import compiling
 from ffcgs_jax.synthesis.optim import AdamState, adam_init, adam_update
 
 
@@ -154,28 +156,54 @@ def weights_meta(cfg: TrainConfig, hand: str, extra: dict) -> dict:
             "train": {"config": to_toml(cfg)} | extra}
 
 
+RUN_CONFIG_MARK = "# written by ffcgs train: the resolved config of the run in this folder"
+"""The first line of the config.toml a run writes: `ffcgs train --out` rewrites only a config.toml that begins with
+it (or that stands beside a checkpoint: runs of older versions), never a config the user put there."""
+
+
 def run_folder(cfg) -> tuple[Path, str, Path, Path, Path]:
     """(out folder, the config as TOML, its config.toml, checkpoint.npz and metrics.jsonl) of a training run,
     once `check_run_folder` allows the run there. Shared by every `ffcgs train` model."""
     out = Path(cfg.out).expanduser()
-    text = to_toml(cfg)
+    text = f"{RUN_CONFIG_MARK} (train --config it to repeat the run)\n{to_toml(cfg)}"
     cfg_path, ckpt_path, log_path = out / "config.toml", out / "checkpoint.npz", out / "metrics.jsonl"
-    check_run_folder(out, cfg_path, ckpt_path, text)
+    # the advice to resume names the model: the sampler's parser refuses the evaluator's [net] section
+    check_run_folder(out, cfg_path, ckpt_path, text, "" if isinstance(cfg, TrainConfig) else " --model evaluator")
     return out, text, cfg_path, ckpt_path, log_path
 
 
-def check_run_folder(out: Path, cfg_path: Path, ckpt_path: Path, text: str) -> None:
+def check_run_folder(out: Path, cfg_path: Path, ckpt_path: Path, text: str, model_flag: str = "") -> None:
     """`out` may be new, empty, or this configuration's run (resumed); a file, another configuration's run, or a
     folder of other files is refused before anything is written."""
     if out.exists() and not out.is_dir():
         raise FfcgsError(f"--out {out} is a file, not a folder: a training run writes a folder (config.toml, "
                          "checkpoint.npz, weights.npz, ...)")
-    if ckpt_path.is_file() and cfg_path.is_file() and cfg_path.read_text() != text:
-        raise FfcgsError(f"{out} holds a run with a different config ({cfg_path}); resume it with --config "
-                         f"{cfg_path} or choose another --out")
+    old = _read_config(cfg_path)
+    if old is not None and not old.startswith(RUN_CONFIG_MARK) and not ckpt_path.is_file():
+        raise FfcgsError(f"--out {out} holds a config.toml that no ffcgs train run wrote ({cfg_path}), which a run "
+                         f"would replace with its own; choose another --out (to train from that config: `ffcgs "
+                         f"train{model_flag} --config {cfg_path} --out NEW`)")
+    if ckpt_path.is_file() and old is not None and _body(old) != _body(text):
+        raise FfcgsError(f"{out} holds a run with a different config ({cfg_path}); resume it with `ffcgs "
+                         f"train{model_flag} --config {cfg_path}` or choose another --out")
     if out.is_dir() and not cfg_path.is_file() and any(p.is_file() for p in out.iterdir()):
         raise FfcgsError(f"--out {out} holds files but no training run (no config.toml); choose a new or empty "
                          "folder")
+
+
+def _read_config(path: Path) -> str | None:
+    if not path.is_file():
+        return None
+    try:
+        return path.read_text()
+    except (OSError, UnicodeDecodeError):
+        return ""  # unreadable: no run's config, refused as such
+
+
+def _body(config_text: str) -> str:
+    """A run's config.toml without its first line (`RUN_CONFIG_MARK`), to compare with one of an older version."""
+    first, _, rest = config_text.partition("\n")
+    return rest if first.startswith(RUN_CONFIG_MARK) else config_text
 
 
 def train(cfg: TrainConfig, hand: str | None = None, progress: bool = True, until_epoch: int | None = None,
@@ -223,9 +251,11 @@ def train(cfg: TrainConfig, hand: str | None = None, progress: bool = True, unti
     pose = jnp.asarray(data.pose)
     chunk = min(cfg.steps_per_call, steps_per_epoch)
     t_start = time.perf_counter()
+    # drawn from its first update on (`delay`): before it, the first step's compile has its own line
     bar = tqdm(total=total, initial=start_epoch * steps_per_epoch, desc=f"train {out.name}", unit="step",
-               disable=not progress, dynamic_ncols=True)
+               disable=not progress, dynamic_ncols=True, delay=1e-3)
     last_val = None
+    first_step = start_epoch * steps_per_epoch
     with open(log_path, "a") as log:
         for epoch in range(start_epoch, o.epochs if until_epoch is None else min(until_epoch, o.epochs)):
             rng = np.random.default_rng([cfg.seed, epoch])
@@ -235,10 +265,12 @@ def train(cfg: TrainConfig, hand: str | None = None, progress: bool = True, unti
             for s in range(0, steps_per_epoch, chunk):
                 n = min(chunk, steps_per_epoch - s)
                 sel = np.arange(s, s + chunk) % steps_per_epoch  # the padding steps are masked off
-                params, opt, m = train_steps(
-                    params, opt, jnp.asarray(step + s, jnp.int32), jnp.asarray(np.arange(chunk) < n), *grids, pose,
-                    jnp.asarray(rec_idx[sel]), jnp.asarray(grasp_idx[sel]), palm_root, tet_root,
-                    jnp.asarray(cfg.seed, jnp.int32), jnp.asarray(total, jnp.int32), optim=o, kl=cfg.kl)
+                # the first call compiles (minutes on a small CPU): a ticker says so; later calls only dispatch
+                with compiling("the CVAE's training step", show=progress) if step + s == first_step else nullcontext():
+                    params, opt, m = train_steps(
+                        params, opt, jnp.asarray(step + s, jnp.int32), jnp.asarray(np.arange(chunk) < n), *grids,
+                        pose, jnp.asarray(rec_idx[sel]), jnp.asarray(grasp_idx[sel]), palm_root, tet_root,
+                        jnp.asarray(cfg.seed, jnp.int32), jnp.asarray(total, jnp.int32), optim=o, kl=cfg.kl)
                 m = {key: np.asarray(v)[:n] for key, v in m.items()}
                 if not np.isfinite(m["loss"]).all():
                     raise FfcgsError(f"the loss became non-finite at step {step + s} (epoch {epoch}); lower "

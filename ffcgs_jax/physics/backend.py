@@ -4,13 +4,16 @@ A backend is a simulator over one compiled `PhysicsScene`: `initial(batch)` give
 `run(state, batch, segment, track)` advances them through a `Segment` of open-loop control (calling
 `track(state)` after each `CHUNK` of steps), `probe(state, batch, offset)` reads the object's pose and the
 contacts the success rules need, `take(state, idx)` keeps the grasps at `idx` (grasps whose failure is certain
-leave the batch) and `flagged(state)` says which grasps' simulation the backend cannot vouch for.
+leave the batch), `flagged(state)` says which grasps' simulation the backend cannot vouch for (`runner` runs them
+again on the CPU) and `unstable(state)` which diverged (a non-finite or absurd state, or MuJoCo warned and stopped
+it: such a grasp fails with reason "unstable").
 `protocols.run_protocol` drives any backend through a protocol; `backend_cpu.CpuSim` (CPU MuJoCo),
 `backend_mjx.MjxSim` (MJX) and `backend_warp.WarpSim` (MuJoCo Warp) implement it and import only this module,
 never each other.
 """
 
 import dataclasses
+import logging
 from collections.abc import Callable
 from typing import Any, Protocol, runtime_checkable
 
@@ -20,6 +23,11 @@ import numpy as np
 from ffcgs_jax.physics.scene import PhysicsScene
 
 CHUNK = 250  # steps per rollout call: bounds the state buffer (B x CHUNK x nstate) and samples the six-dir motion
+# m/s or rad/s: no part of a hand or a grasped object moves this fast; a simulation that does has diverged (MuJoCo's
+# own check, mjMAXVAL, is 1e10)
+MAX_SPEED = 1e4
+
+LOG = logging.getLogger("ffcgs_jax.physics")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -68,6 +76,28 @@ class Simulator(Protocol):
     def take(self, state: Any, idx: np.ndarray) -> Any: ...
 
     def flagged(self, state: Any) -> np.ndarray: ...
+
+    def unstable(self, state: Any) -> np.ndarray: ...
+
+
+def diverged(qpos: np.ndarray, qvel: np.ndarray) -> np.ndarray:
+    """Per row of qpos (B, nq) and qvel (B, nv): the state is not finite or moves faster than `MAX_SPEED`."""
+    qpos, qvel = np.asarray(qpos, np.float64), np.asarray(qvel, np.float64)
+    finite = np.isfinite(qpos).all(axis=1) & np.isfinite(qvel).all(axis=1)
+    return ~finite | (np.abs(np.nan_to_num(qvel)).max(axis=1, initial=0.0) > MAX_SPEED)
+
+
+def _log_warning(message: str) -> None:
+    LOG.debug("MuJoCo: %s", message)
+
+
+def route_mujoco_warnings() -> None:
+    """Send MuJoCo's warnings to the logger `LOG` (debug level) instead of MuJoCo's default: stderr and a
+    MUJOCO_LOG.TXT it appends to in the current working folder. The backends read instability from each trial's
+    state, so the text is only a diagnostic. A handler the caller installed (`mujoco.set_mju_user_warning`) is
+    kept. Process-wide, as MuJoCo's handler is; called by each backend when it starts, not at import."""
+    if mujoco.get_mju_user_warning() is None:
+        mujoco.set_mju_user_warning(_log_warning)
 
 
 def mat_to_quat(R: np.ndarray) -> np.ndarray:

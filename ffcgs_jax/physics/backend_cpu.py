@@ -1,5 +1,12 @@
 """The CPU backend of the physics test: `CpuSim`, CPU MuJoCo through `mujoco.rollout` (threads across grasps, no
-Python per step)."""
+Python per step).
+
+Instability: `mujoco.rollout` clears a trial's warning counters when it starts and stops stepping the trial at its
+first warning (bad qpos, qvel or qacc, contact or constraint buffer full, ...), repeating that state to the end,
+so such a trial's clock stops; MuJoCo's own checks also reset the data, clock included. A trial whose clock is
+not where its steps put it, whose state is not finite or that moved faster than `backend.MAX_SPEED` at any step
+diverged: `CpuSim` writes NaN into its state's time (which no step reads), so the mark goes wherever the row goes
+(`take`) and `unstable` reads it back."""
 
 import os
 from collections.abc import Callable
@@ -8,7 +15,7 @@ import mujoco
 import numpy as np
 from mujoco import rollout
 
-from ffcgs_jax.physics.backend import CHUNK, Batch, Segment, pose_hand
+from ffcgs_jax.physics.backend import CHUNK, Batch, Segment, diverged, pose_hand, route_mujoco_warnings
 from ffcgs_jax.physics.scene import PhysicsScene
 
 GROUP_PER_THREAD = 4  # CPU grasps per thread per rollout group: keeps threads busy and the progress bar moving
@@ -24,6 +31,7 @@ class CpuSim:
     """Runs segments for a batch on CPU MuJoCo with `mujoco.rollout` threads. States are FULLPHYSICS vectors."""
 
     def __init__(self, scene: PhysicsScene, workers: int = 0):
+        route_mujoco_warnings()
         self.scene = scene
         self.nthread = workers or os.cpu_count() or 1
         self.datas = [mujoco.MjData(scene.model) for _ in range(self.nthread)]
@@ -34,8 +42,12 @@ class CpuSim:
         out = np.zeros((len(batch.q_start), self.size))
         for g in range(len(out)):
             pose_hand(self.scene, d, batch.wrist_pos[g], batch.wrist_quat[g], batch.q_start[g])
+            for w in d.warning:
+                w.number = 0
             mujoco.mj_forward(self.scene.model, d)
             mujoco.mj_getState(self.scene.model, d, out[g], _STATE)
+            if any(w.number for w in d.warning):
+                out[g, 0] = np.nan
         return out
 
     def run(self, state: np.ndarray, batch: Batch, seg: Segment, track: Callable | None = None) -> np.ndarray:
@@ -65,7 +77,9 @@ class CpuSim:
             control = np.ascontiguousarray(np.concatenate(parts, axis=2))
             states, _ = rollout.rollout(m, self.datas, state, control, control_spec=spec, nstep=i1 - i0,
                                         persistent_pool=True)
+            bad = self._diverged(state[:, 0], states)
             state = np.ascontiguousarray(states[:, -1])
+            state[bad, 0] = np.nan
             if track is not None:
                 track(state)
         return state
@@ -74,7 +88,19 @@ class CpuSim:
         return state[idx]
 
     def flagged(self, state: np.ndarray) -> np.ndarray:
-        return np.zeros(len(state), bool)  # CPU MuJoCo grows its buffers as needed
+        return np.zeros(len(state), bool)  # a full contact or constraint buffer is a warning here: `unstable`
+
+    def unstable(self, state: np.ndarray) -> np.ndarray:
+        return ~np.isfinite(state).all(axis=1)
+
+    def _diverged(self, t0: np.ndarray, states: np.ndarray) -> np.ndarray:
+        """Which trials of a rollout (B, k, nstate) from times t0 (B,) diverged (see the module's docstring)."""
+        m = self.scene.model
+        k, dt = states.shape[1], m.opt.timestep
+        clock = np.abs(states[:, -1, 0] - (t0 + k * dt)) <= 0.5 * dt  # False for NaN: marked before
+        flat = states.reshape(-1, states.shape[2])
+        moved = diverged(flat[:, 1: 1 + m.nq], flat[:, 1 + m.nq: 1 + m.nq + m.nv]).reshape(len(states), k)
+        return ~clock | moved.any(axis=1)
 
     def probe(self, state: np.ndarray, batch: Batch, offset=(0.0, 0.0, 0.0)) -> dict[str, np.ndarray]:
         """Object pose (world, and position in the hand's root frame), table and hand contact of each state, with

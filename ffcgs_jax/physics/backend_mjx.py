@@ -33,7 +33,7 @@ import numpy as np
 
 from ffcgs_jax.errors import FfcgsError
 from ffcgs_jax.hand.mjx_import import mjx
-from ffcgs_jax.physics.backend import CHUNK, Batch, Segment, pose_hand
+from ffcgs_jax.physics.backend import CHUNK, Batch, Segment, diverged, pose_hand, route_mujoco_warnings
 from ffcgs_jax.physics.scene import PhysicsScene
 from ffcgs_jax.runtime.fixed_shapes import pad_rows
 
@@ -79,6 +79,7 @@ class MjxSim:
     """Runs segments for a batch on MuJoCo MJX. States are batched `mjx.Data` (leading axis: grasps)."""
 
     def __init__(self, scene: PhysicsScene):
+        route_mujoco_warnings()  # `initial` poses the hands with CPU MuJoCo
         self.scene = scene
         self.model = put_model(scene.model)
         self._device = jax.devices()[0]  # where put_model puts the model
@@ -146,6 +147,10 @@ class MjxSim:
 
     def flagged(self, state: mjx.Data) -> np.ndarray:
         return np.zeros(len(state.qpos), bool)  # fixed contact slots per pair: nothing to overflow
+
+    def unstable(self, state: mjx.Data) -> np.ndarray:
+        # MJX neither warns nor resets: a diverged grasp keeps its NaN or runaway state, so the last one shows it
+        return diverged(np.asarray(state.qpos), np.asarray(state.qvel))
 
     def probe(self, state: mjx.Data, batch: Batch, offset=(0.0, 0.0, 0.0)) -> dict[str, np.ndarray]:
         """Object pose (world, and position in the hand's root frame), table and hand contact of each state, with

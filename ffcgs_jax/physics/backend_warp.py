@@ -9,7 +9,8 @@ pushes of six-dir each start from the same closed state, as on the CPU.
 
 Contact and constraint buffers are sized from the scene (`buffer_sizes`); MuJoCo Warp flags a world whose
 contacts or constraint rows did not fit (`Data.overflow`). Such a world's result is not trusted: `WarpSim.flagged`
-marks it and `runner.evaluate` runs those grasps again on the CPU.
+marks it and `runner.evaluate` runs those grasps again on the CPU. A world whose state is not finite or runs away
+(`backend.diverged`, read after each chunk) is `WarpSim.unstable`: that grasp fails "unstable".
 
 Needs `pip install -e ".[warp]"` (warp-lang, mujoco-warp). It runs on a CUDA device, or slowly on the CPU (what
 the tests use); kernels compile on first use (about a minute) and are cached on disk by Warp.
@@ -23,7 +24,7 @@ import mujoco
 import numpy as np
 
 from ffcgs_jax.errors import FfcgsError
-from ffcgs_jax.physics.backend import CHUNK, Batch, Segment, pose_hand
+from ffcgs_jax.physics.backend import CHUNK, Batch, Segment, diverged, pose_hand, route_mujoco_warnings
 from ffcgs_jax.physics.scene import PhysicsScene
 from ffcgs_jax.runtime.fixed_shapes import pad_rows
 
@@ -127,6 +128,7 @@ class WarpSim:
         reason = unavailable()
         if reason:
             raise FfcgsError(reason)
+        route_mujoco_warnings()  # `initial` poses the hands with CPU MuJoCo
         import mujoco_warp as mjw
         import warp as wp
 
@@ -196,6 +198,10 @@ class WarpSim:
 
     def flagged(self, state: WarpState) -> np.ndarray:
         return state.overflow
+
+    def unstable(self, state: WarpState) -> np.ndarray:
+        qpos, qvel = (a if isinstance(a, np.ndarray) else a.numpy() for a in map(state.arrays.get, ("qpos", "qvel")))
+        return diverged(qpos[: state.n], qvel[: state.n])
 
     def initial(self, batch: Batch) -> WarpState:
         """Each grasp's start (hand at its wrist pose with the fingers at q_start, at rest), set on the CPU."""

@@ -22,7 +22,9 @@ LIFT_HOLD = 0.25  # seconds of rest between the lift and the shaking
 DIRECTIONS = np.array([[1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1], [0, 0, -1]], np.float64)
 
 
-REASONS = ("ok", "penetration", "lost", "slip")
+# a grasp's `reason` is its index here: new reasons go at the end, so files written before them read the same
+REASONS = ("ok", "penetration", "lost", "slip", "unstable")
+UNSTABLE = REASONS.index("unstable")
 
 
 def result_key(protocol: str, field: str) -> str:
@@ -101,17 +103,22 @@ def rotation_angle(q1: np.ndarray, q2: np.ndarray) -> np.ndarray:
 
 
 
-def failure_reason(bad_start: np.ndarray, lost: np.ndarray, moved: np.ndarray) -> np.ndarray:
-    """Per grasp, its index into REASONS: the first of a bad start, lost, moved that holds, else ok (0)."""
-    return np.select([bad_start, lost, moved], [1, 2, 3], 0).astype(np.int8)
+def failure_reason(bad_start: np.ndarray, lost: np.ndarray, moved: np.ndarray, unstable: np.ndarray | None = None
+                   ) -> np.ndarray:
+    """Per grasp, its index into REASONS: the first of a bad start, unstable (the simulation diverged: whatever it
+    showed after that is not evidence), lost, moved that holds, else ok (0)."""
+    unstable = np.zeros(len(bad_start), bool) if unstable is None else unstable
+    return np.select([bad_start, unstable, lost, moved], [1, UNSTABLE, 2, 3], 0).astype(np.int8)
 
 
 
 def _drive(sim: Simulator, state: Any, batch: Batch, rows: np.ndarray, segs: list[Segment], flagged: np.ndarray,
-           check: Callable[[Any, np.ndarray], np.ndarray] | None = None) -> tuple[Any, np.ndarray]:
+           unstable: np.ndarray, check: Callable[[Any, np.ndarray], np.ndarray] | None = None
+           ) -> tuple[Any, np.ndarray]:
     """Run `segs` for the grasps `rows` of `batch` (their states: `state`) in pieces of `CHUNK` steps. After each
     piece `check(state, rows)` says which grasps go on; the others leave the batch (`sim.take`), so a grasp whose
-    failure is already certain costs no more simulation. `flagged[rows]` collects the backend's untrusted worlds."""
+    failure is already certain costs no more simulation. `flagged[rows]` collects the backend's untrusted worlds,
+    `unstable[rows]` its diverged ones, which leave the batch too. Returns the final states and their grasps."""
     for seg in segs:
         for i0 in range(0, seg.n, CHUNK):
             if len(rows) == 0:
@@ -124,11 +131,27 @@ def _drive(sim: Simulator, state: Any, batch: Batch, rows: np.ndarray, segs: lis
 
             state = sim.run(state, batch.rows(rows), Segment(i1 - i0, make, seg.force, seg.hold))
             flagged[rows] |= sim.flagged(state)[: len(rows)]  # a backend may pad its batch
+            keep = ~sim.unstable(state)[: len(rows)]
+            unstable[rows] |= ~keep
             if check is not None:
-                keep = check(state, rows)
-                if not keep.all():
-                    state, rows = sim.take(state, np.flatnonzero(keep)), rows[keep]
+                keep &= check(state, rows)
+            if not keep.all():
+                state, rows = sim.take(state, np.flatnonzero(keep)), rows[keep]
     return state, rows
+
+
+def _probe(sim: Simulator, state: Any, batch: Batch, rows: np.ndarray, b: int) -> dict[str, np.ndarray]:
+    """`sim.probe` of the grasps `rows` (their states: `state`) as arrays over all b grasps, zero elsewhere."""
+    if len(rows) == 0:  # every grasp diverged: a backend's probe may need at least one
+        return dict(pos=np.zeros((b, 3)), quat=np.zeros((b, 4)), rel=np.zeros((b, 3)), table=np.zeros(b, bool),
+                    touch=np.zeros(b, bool))
+    return {k: _scatter(v, rows, b) for k, v in sim.probe(state, batch.rows(rows)).items()}
+
+
+def _void(unstable: np.ndarray, *arrays: np.ndarray) -> None:
+    """NaN in the rows of diverged grasps: a move or turn read from a diverged simulation is no measurement."""
+    for a in arrays:
+        a[unstable] = np.nan
 
 
 
@@ -137,6 +160,9 @@ def run_protocol(sim: Simulator, batch: Batch, depth: np.ndarray, cfg: PhysicsCo
     """Execute and test every grasp of `batch` on `sim` (a backend for the protocol's scene). Returns per-grasp
     arrays: success, reason (index into REASONS), move (m), rot (deg), for six-dir move_dir / rot_dir (B, 6), and
     flagged (the backend could not trust the simulation: `runner` runs those grasps again on the CPU).
+
+    A grasp whose simulation diverged at any step (`sim.unstable`) leaves the batch then and fails "unstable",
+    whatever it had shown; its move and rot (and move_dir / rot_dir) are NaN.
 
     Grasps stop being simulated as soon as their failure is certain: a grasp that starts in penetration is not
     simulated (move and rot NaN); in lift-shake a grasp leaves once the hand no longer touches the object and the
@@ -149,7 +175,7 @@ def run_protocol(sim: Simulator, batch: Batch, depth: np.ndarray, cfg: PhysicsCo
         return _run_bench(sim, batch, depth, dgb.config(cfg, protocol))
     b = len(depth)
     bad_start = depth > cfg.max_initial_penetration
-    flagged = np.zeros(b, bool)
+    flagged, unstable = np.zeros(b, bool), np.zeros(b, bool)
     move, rot = np.full(b, np.nan), np.full(b, np.nan)
     lost = np.zeros(b, bool)
     idx = np.flatnonzero(~bad_start)
@@ -158,8 +184,8 @@ def run_protocol(sim: Simulator, batch: Batch, depth: np.ndarray, cfg: PhysicsCo
         if protocol == "six-dir":
             out.update(move_dir=np.full((b, 6), np.nan), rot_dir=np.full((b, 6), np.nan))
         return {**out, "flagged": flagged}
-    closed, _ = _drive(sim, sim.initial(batch.rows(idx)), batch, idx, closing(batch, cfg), flagged)
-    ref = {k: _scatter(v, idx, b) for k, v in sim.probe(closed, batch.rows(idx)).items()}
+    closed, held = _drive(sim, sim.initial(batch.rows(idx)), batch, idx, closing(batch, cfg), flagged, unstable)
+    ref = _probe(sim, closed, batch, held, b)
     if protocol == "lift-shake":
         def dropped(state, rows):
             p = sim.probe(state, batch.rows(rows))
@@ -169,21 +195,22 @@ def run_protocol(sim: Simulator, batch: Batch, depth: np.ndarray, cfg: PhysicsCo
             lost[rows[gone]] = True
             return ~gone
 
-        state, rows = _drive(sim, closed, batch, idx, lift_shake(batch, cfg), flagged, dropped)
+        state, rows = _drive(sim, closed, batch, held, lift_shake(batch, cfg), flagged, unstable, dropped)
         table = np.zeros(b, bool)
         if len(rows):
             end = sim.probe(state, batch.rows(rows), np.array([0.0, 0.0, cfg.lift_height]))
             move[rows] = np.linalg.norm(end["rel"] - ref["rel"][rows], axis=1)
             rot[rows] = rotation_angle(end["quat"], ref["quat"][rows])
             lost[rows], table[rows] = ~end["touch"], end["table"]
+        _void(unstable, move, rot)
         moved = (move >= cfg.max_slip) | table
-        return dict(success=~(bad_start | lost | moved), reason=failure_reason(bad_start, lost, moved), move=move,
-                    rot=rot, flagged=flagged)
+        return dict(success=~(bad_start | lost | moved | unstable),
+                    reason=failure_reason(bad_start, lost, moved, unstable), move=move, rot=rot, flagged=flagged)
     move_dir, rot_dir = np.full((b, 6), np.nan), np.full((b, 6), np.nan)
-    lost[idx] = ~ref["touch"][idx]
+    lost[held] = ~ref["touch"][held]
     where = np.zeros(b, np.int64)
-    where[idx] = np.arange(len(idx))  # row of each grasp in the closed states
-    failed = bad_start | lost
+    where[held] = np.arange(len(held))  # row of each grasp in the closed states
+    failed = bad_start | lost | unstable
     for k, direction in enumerate(DIRECTIONS):
         rows = np.flatnonzero(~failed)
         if len(rows) == 0:
@@ -199,12 +226,14 @@ def run_protocol(sim: Simulator, batch: Batch, depth: np.ndarray, cfg: PhysicsCo
             return ~out
 
         _drive(sim, sim.take(closed, where[rows]), batch, rows, [push(batch, cfg, direction, sim.scene.mass)],
-               flagged, pushed)
+               flagged, unstable, pushed)
+        failed |= unstable
+    _void(unstable, move_dir, rot_dir)
     tried = ~np.isnan(move_dir).all(axis=1)
     move[tried], rot[tried] = np.nanmax(move_dir[tried], axis=1), np.nanmax(rot_dir[tried], axis=1)
     moved = (np.nan_to_num(move) >= cfg.max_move) | (np.nan_to_num(rot) >= cfg.max_rot_deg)
-    return dict(success=~(bad_start | lost | moved), reason=failure_reason(bad_start, lost, moved), move=move, rot=rot,
-                move_dir=move_dir, rot_dir=rot_dir, flagged=flagged)
+    return dict(success=~(bad_start | lost | moved | unstable), reason=failure_reason(bad_start, lost, moved, unstable),
+                move=move, rot=rot, move_dir=move_dir, rot_dir=rot_dir, flagged=flagged)
 
 
 
@@ -244,11 +273,11 @@ def _run_bench(sim: Simulator, batch: Batch, depth: np.ndarray, cfg: PhysicsConf
     pre-grasp once, then from that state each direction's push, the object's pose compared every
     `dgb.CHECK_TIME` with its pose at the pre-grasp; a grasp leaves at its first failing check. Returns the
     arrays of `run_protocol` with move_dir / rot_dir (B, 6): the largest move and turn over each direction's
-    checks (NaN where not pushed). Reasons: penetration (at the pre-grasp), lost (failed and no hand contact after
-    the squeeze), slip (failed otherwise)."""
+    checks (NaN where not pushed). Reasons: penetration (at the pre-grasp), unstable (the simulation diverged, as in
+    `run_protocol`), lost (failed and no hand contact after the squeeze), slip (failed otherwise)."""
     b = len(depth)
     bad_start = depth > cfg.max_initial_penetration
-    flagged = np.zeros(b, bool)
+    flagged, unstable = np.zeros(b, bool), np.zeros(b, bool)
     move, rot = np.full(b, np.nan), np.full(b, np.nan)
     move_dir, rot_dir = np.full((b, 6), np.nan), np.full((b, 6), np.nan)
     lost = np.zeros(b, bool)
@@ -257,11 +286,12 @@ def _run_bench(sim: Simulator, batch: Batch, depth: np.ndarray, cfg: PhysicsConf
     if len(idx):
         start = sim.initial(batch.rows(idx))
         ref = {k: _scatter(v, idx, b) for k, v in sim.probe(start, batch.rows(idx)).items()}  # at the pre-grasp
-        squeezed, _ = _drive(sim, start, batch, idx, grasp_and_squeeze(batch, cfg), flagged)
-        lost[idx] = ~sim.probe(squeezed, batch.rows(idx))["touch"]
+        squeezed, held = _drive(sim, start, batch, idx, grasp_and_squeeze(batch, cfg), flagged, unstable)
+        lost[held] = ~_probe(sim, squeezed, batch, held, b)["touch"][held]
         where = np.zeros(b, np.int64)
-        where[idx] = np.arange(len(idx))  # row of each grasp in the squeezed states
+        where[held] = np.arange(len(held))  # row of each grasp in the squeezed states
         every = _steps(dgb.CHECK_TIME, cfg.timestep)
+        failed |= unstable
         for k, direction in enumerate(DIRECTIONS):
             rows = np.flatnonzero(~failed)
             if len(rows) == 0:
@@ -277,11 +307,13 @@ def _run_bench(sim: Simulator, batch: Batch, depth: np.ndarray, cfg: PhysicsConf
                 return ~out
 
             _drive(sim, sim.take(squeezed, where[rows]), batch, rows,
-                   split_segment(bench_push(batch, cfg, direction, sim.scene.mass), every), flagged, checked)
+                   split_segment(bench_push(batch, cfg, direction, sim.scene.mass), every), flagged, unstable, checked)
+            failed |= unstable
+    _void(unstable, move_dir, rot_dir)
     tried = ~np.isnan(move_dir).all(axis=1)
     move[tried], rot[tried] = np.nanmax(move_dir[tried], axis=1), np.nanmax(rot_dir[tried], axis=1)
     moved = failed & ~bad_start
-    return dict(success=~failed, reason=failure_reason(bad_start, moved & lost, moved), move=move, rot=rot,
+    return dict(success=~failed, reason=failure_reason(bad_start, moved & lost, moved, unstable), move=move, rot=rot,
                 move_dir=move_dir, rot_dir=rot_dir, flagged=flagged)
 
 

@@ -26,10 +26,19 @@ DexGraspBench's MuJoCo test (`dexgraspbench`, `dexgraspbench-bodex`; `dexgraspbe
 differs from the benchmark's code) has its own scene and execution: gravity off, the hand from a pre-grasp through
 the grasp to a squeeze, then 10 x mass along each of the six directions for 2 s; < 5 cm and < 15 degrees.
 
-Failure modes are recorded per grasp (`reason`): penetration; lost (no hand contact left: dropped or pushed out
-while closing); slip (still touched but moved past the bound). A grasp stops being simulated as soon as its
+Failure modes are recorded per grasp (`reason`, an index into `protocols.REASONS`): penetration; lost (no hand
+contact left: dropped or pushed out while closing); slip (still touched but moved past the bound); unstable (the
+simulation diverged: MuJoCo warned and stopped the trial (bad qpos, qvel or qacc, contact or constraint buffer
+full), or its state turned non-finite or ran away (`backend.diverged`); its move and rot are NaN, and it never
+passes). MuJoCo's warning text goes to the logger "ffcgs_jax.physics" at debug level, not to stderr or a
+MUJOCO_LOG.TXT in the working folder (`backend.route_mujoco_warnings`). A grasp stops being simulated as soon as its
 failure is certain (`protocols.run_protocol`: penetration at the start, dropped during lift-shake, past a bound in
 a six-dir push); the outcomes are those of simulating every grasp to the end (tested, and identical on 271 grasps).
+
+Poses the hand cannot reach the object from are refused before anything is simulated (`check_reach`): a wrist
+farther from the mesh's bounding box than the hand's reach (`hand_reach`) plus `REACH_MARGIN`. Such a pose is a
+wrong input (millimetres for metres, another frame), never a grasp to score, so the whole call is refused with one
+line naming how many there are and the first.
 
 The simulator (`PhysicsConfig.backend`, `resolve_backend`) is CPU MuJoCo through `mujoco.rollout` (threads across
 grasps, no Python per step) or MuJoCo Warp (`backend_warp`, grasps as worlds on a CUDA GPU); MJX
@@ -59,6 +68,9 @@ from ffcgs_jax.physics.scene import PhysicsScene
 # One H100 with a 16-core host (bench/RESULTS.md): warp costs about 4 s per protocol pair to start plus 1/265 s per
 # grasp; CPU MuJoCo about 0.8 core-seconds per grasp. Warp wins from about 6 grasps per core.
 WARP_GRASPS_PER_CORE = 6
+# m beyond the hand's reach before a wrist pose is refused: hull parts may bulge past the mesh a little, and a grasp
+# just out of reach is a legitimate failure ("lost") rather than a wrong input
+REACH_MARGIN = 0.1
 
 
 def resolve_backend(name: str, n: int | None = None) -> tuple[str, str | None]:
@@ -98,6 +110,49 @@ def scenes(spec: HandSpec, mesh: trimesh.Trimesh, cfg: PhysicsConfig, protocols,
                                      hold=not lift)
     return out
 
+
+
+def hand_reach(spec: HandSpec) -> float:
+    """An upper bound (m) on how far any geom of the hand reaches from its root body's origin at any joint angles:
+    along the chain from the root to the geom's body, each body's offset, plus twice its hinge or ball joints'
+    offsets from its origin (turning about such a joint moves the origin by at most that) and its slides' travel;
+    then the geom's offset and bounding radius."""
+    m = spec.mj_model()
+    root = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_BODY, spec.root_body)
+    far = np.full(m.nbody, np.nan)  # NaN: not below the root
+    far[root] = 0.0
+    for b in range(root + 1, m.nbody):  # MuJoCo numbers a body after its parent
+        parent = m.body_parentid[b]
+        if np.isnan(far[parent]):
+            continue
+        joints = range(m.body_jntadr[b], m.body_jntadr[b] + m.body_jntnum[b])
+        slide = [j for j in joints if m.jnt_type[j] == mujoco.mjtJoint.mjJNT_SLIDE]
+        turn = [j for j in joints if j not in slide]
+        far[b] = (far[parent] + np.linalg.norm(m.body_pos[b])
+                  + 2 * sum(np.linalg.norm(m.jnt_pos[j]) for j in turn)
+                  + sum(np.abs(m.jnt_range[j]).max() for j in slide))
+    hand = ~np.isnan(far[m.geom_bodyid])
+    reach = far[m.geom_bodyid] + np.linalg.norm(m.geom_pos, axis=1) + m.geom_rbound
+    return float(reach[hand].max(initial=0.0))
+
+
+def check_reach(spec: HandSpec, mesh: trimesh.Trimesh, wrist_pose, index=None) -> None:
+    """Refuse, in one line (FfcgsError), wrist poses (B, 4, 4) whose origin lies farther from the mesh's bounding box
+    than the hand can reach (`hand_reach` + `REACH_MARGIN`): no finger could touch the object, and the simulation of
+    a hand metres or kilometres away from its target is no test of anything. `index` (B,): the grasps' numbers for
+    the message (default 0..B-1)."""
+    from ffcgs_jax.hand.kinematics import check_wrist_poses
+
+    pos = check_wrist_poses(wrist_pose, "wrist_pose").reshape(-1, 4, 4)[:, :3, 3]
+    lo, hi = np.asarray(mesh.bounds, np.float64)
+    dist = np.linalg.norm(pos - np.clip(pos, lo, hi), axis=1)
+    limit = hand_reach(spec) + REACH_MARGIN
+    far = np.flatnonzero(dist > limit)
+    if len(far):
+        first = int(far[0] if index is None else np.asarray(index)[far[0]])
+        raise FfcgsError(f"{len(far)} of {len(pos)} grasps have the wrist farther from the object than hand "
+                         f"{spec.name} can reach ({limit:.2f} m from the mesh's bounding box), the first grasp "
+                         f"{first} at {dist[far[0]]:.3g} m: are the poses in metres and in the object's frame?")
 
 
 def check_inputs(scene: PhysicsScene, wrist_pose, q) -> tuple[np.ndarray, np.ndarray]:
@@ -232,7 +287,8 @@ def evaluate(spec: HandSpec, mesh: trimesh.Trimesh, wrist_pose, q, cfg: PhysicsC
     Returns flat per-grasp arrays for an npz: initial_penetration, palm_contact and, per protocol p (with '-'
     written '_'), p_success, p_reason (index into protocols.REASONS), p_move (m), p_rot (degrees) and for six-dir
     and DexGraspBench's protocols p_move_dir, p_rot_dir (B, 6); for DexGraspBench's also p_pregrasp_penetration (m,
-    the depth its penetration rule reads).
+    the depth its penetration rule reads). A grasp whose simulation diverged fails with reason "unstable"; wrist
+    poses out of the hand's reach of the object are refused before anything is simulated (`check_reach`).
 
     DexGraspBench's protocols (`dexgraspbench`) run on CPU MuJoCo only: with `cfg.backend` "auto" they do so
     whatever `backend` resolved to; an explicit "warp" or "mjx" is refused before anything is simulated."""
@@ -243,6 +299,7 @@ def evaluate(spec: HandSpec, mesh: trimesh.Trimesh, wrist_pose, q, cfg: PhysicsC
             raise FfcgsError(f"unknown protocol {p!r}; protocols: {', '.join(ALL_PROTOCOLS)}")
     if len(np.asarray(q).reshape(-1)) == 0:
         raise FfcgsError("no grasps to test")
+    check_reach(spec, mesh, wrist_pose)
     asked = cfg.backend if backend is None else backend
     backend, _ = resolve_backend(asked, int(np.shape(q)[0]))
     bench = [p for p in protocols if dgb.is_bench(p)]
@@ -332,6 +389,8 @@ def evaluate_grasps(hand, mesh, grasps, cfg=PhysicsConfig(), protocols=None, whi
         raise FfcgsError(f"q must have shape ({len(pose)}, {nq}) to match {len(pose)} wrist poses and hand "
                          f"{spec.name}, got {q.shape}")
     idx = _which(which, len(pose))
+    if len(idx):
+        check_reach(spec, mesh, pose[idx], idx)  # numbered as the caller's grasps, not as the ones tested
     squeeze = arrays.get("squeeze_dir") if hasattr(arrays, "get") else None
     if protocols is None:
         protocols = PROTOCOLS

@@ -54,6 +54,9 @@ def validate(hand, mesh: trimesh.Trimesh, grasps, protocols=PROTOCOLS, cfg: Phys
     """
     if candidates not in ("valid", "all"):
         raise FfcgsError(f"candidates must be 'valid' or 'all', got {candidates!r}")
+    if not isinstance(getattr(grasps, "arrays", None), dict):  # a GraspSet by its fields: physics does not import it
+        raise FfcgsError(f"validate needs a GraspSet (from fj.synthesize or fj.load_grasps), got "
+                         f"{type(grasps).__name__}")
     tested = np.ones(len(grasps["q"]), bool) if candidates == "all" else np.asarray(grasps["valid"], bool)
     arrays = check(getattr(hand, "spec", hand), mesh, grasps.arrays, tested, protocols, cfg, progress, need)
     return dataclasses.replace(grasps, arrays=arrays)
@@ -84,6 +87,8 @@ def check(spec: HandSpec, mesh: trimesh.Trimesh, arrays: dict[str, np.ndarray], 
     n = len(arrays["q"])
     tested = np.asarray(tested, bool)
     idx = np.flatnonzero(tested)
+    if len(idx):  # before any simulation, the grasps numbered as in the file
+        runner.check_reach(spec, mesh, np.asarray(arrays["wrist_pose"])[idx], idx)
     stale = {physics_protocols.result_key(p, s) for p in protocols for s in RESULTS}  # an earlier check's
     arrays = {k: v for k, v in arrays.items() if k not in stale}
     backend, _ = runner.resolve_backend(cfg.backend, max(len(idx), 1) if not need else min(len(idx), chunk_size()))

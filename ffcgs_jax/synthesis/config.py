@@ -4,6 +4,7 @@ pipeline's `GraspConfig`, which nests them with the SDF's.
 
 import dataclasses
 import math
+import warnings
 
 from ffcgs_jax.config import SEED_MAX, check_integer, check_range, from_dict, read_toml
 from ffcgs_jax.errors import FfcgsError
@@ -267,6 +268,12 @@ class GraspConfig:
         check_range("squeeze_angle", self.squeeze_angle, 0.0, 3.0)
         check_integer("devices", self.devices, 0, 4096)
         check_integer("seed", self.seed, 0, SEED_MAX)
+        if self.energy.d0 > self.contact_tol:
+            # said before the compile, not discovered as "0 / 32 valid" after it
+            warnings.warn(f"energy.d0 = {self.energy.d0:g} m plans the fingertips {1000 * self.energy.d0:g} mm inside "
+                          f"the surface, deeper than the {1000 * self.contact_tol:g} mm that counts as touching "
+                          "(contact_tol): few or no grasps will be valid. d0 > 0 is the paper's real-robot squeeze "
+                          "for a position-controlled hand; the physics test squeezes by itself", stacklevel=2)
 
 
 def load_config(path) -> GraspConfig:

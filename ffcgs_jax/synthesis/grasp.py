@@ -31,7 +31,7 @@ from ffcgs_jax.geometry import sdf as sdf_mod
 from ffcgs_jax.hand import kinematics as K
 from ffcgs_jax.hand.kinematics import Hand
 from ffcgs_jax.hand.sites import palm_centre_root
-from ffcgs_jax.runtime import COMPILED_MAX, compile_clock, traced_store
+from ffcgs_jax.runtime import COMPILED_MAX, compile_clock, progress, traced_store
 from ffcgs_jax.synthesis import fetch, grasp_io, memory, prediction, samplers, sharding
 from ffcgs_jax.synthesis import filters as F
 from ffcgs_jax.synthesis.config import EnergyConfig, GraspConfig, OptimConfig
@@ -145,9 +145,11 @@ def compiled_device_part(hand: Hand, target: Target, key: jax.ShapeDtypeStruct, 
             palm_root = jax.device_put(palm_root, NamedSharding(mesh, P()))
         # host callbacks (the proxsuite LP) and programs over several devices cannot be stored
         storable = mesh.size == 1 and dcfg.energy.lp_solver != "proxsuite"
-        lowered, call = traced_store.lower("device_part", part, (hand, target, key, given, given_q, sampler_params,
-                                                                  palm_root), (dcfg, n, sampler_res), storable)
-        compiled = lowered.compile()
+        with progress.compiling("the synthesis"):  # a minute or more on a CPU: the CLI says so while it runs
+            lowered, call = traced_store.lower("device_part", part, (hand, target, key, given, given_q,
+                                                                      sampler_params, palm_root),
+                                               (dcfg, n, sampler_res), storable)
+            compiled = lowered.compile()
         # before anything is allocated: no out-of-memory traceback
         memory.check_fits(compiled, n, mesh.devices.flat[0])
         _COMPILED[k] = compiled, lambda compiled, *args: call(compiled, *args, palm_root)
@@ -181,7 +183,8 @@ class GraspSet:
         return ranking.ranked(self.arrays)
 
 
-def save_grasps(gs: GraspSet, path) -> None:
+# gs unannotated (here and in check_on_mesh): another type is refused with one FfcgsError line, not by a type checker
+def save_grasps(gs, path) -> None:
     """Write `gs` to a grasp .npz file (its arrays, object name and config; not the per-iteration trace), as
     `ffcgs grasp --out` does: atomically, no pickle."""
     grasp_io.save_npz(gs, path)
@@ -224,7 +227,8 @@ def synthesize(hand: Hand, mesh: trimesh.Trimesh | sdf_mod.GradientSDF, cfg: Gra
         start = time.perf_counter()
         with clock() as sdf_compile:
             if grid is None:
-                grid = mesh if isinstance(mesh, sdf_mod.GradientSDF) else sdf_mod.build_sdf(mesh, cfg.sdf)
+                with progress.compiling("the SDF build"):  # its kernels compile on a process's first call
+                    grid = mesh if isinstance(mesh, sdf_mod.GradientSDF) else sdf_mod.build_sdf(mesh, cfg.sdf)
         sdf_s = time.perf_counter() - start - sdf_compile[0]
         target = make_target(grid)
         key = jax.random.PRNGKey(cfg.seed)
@@ -257,7 +261,8 @@ def synthesize(hand: Hand, mesh: trimesh.Trimesh | sdf_mod.GradientSDF, cfg: Gra
         evaluate, eval_compile_s = (lambda: ev), 0.0
         with clock() as aot_eval:
             if queued is None:
-                evaluate, eval_compile_s = prepare_evaluation(hand, surface, target, cfg, out)
+                with progress.compiling("the evaluation"):
+                    evaluate, eval_compile_s = prepare_evaluation(hand, surface, target, cfg, out)
         gs = finish(hand, target, cfg, out, evaluate, synthesis_s, object_name)
     on_the_way = every[0] - aot_device[0] - aot_eval[0]
     compile_total = compile_s + eval_compile_s + on_the_way
@@ -380,17 +385,46 @@ def metrics_config(cfg: GraspConfig) -> metrics.MetricsConfig:
     return metrics.MetricsConfig(**{name: getattr(cfg.energy, name) for name in fields}, contact_tol=cfg.contact_tol)
 
 
-def check_on_mesh(hand: Hand, mesh: trimesh.Trimesh, gs: GraspSet, grid: sdf_mod.GradientSDF) -> dict[str, np.ndarray]:
+def check_on_mesh(hand: Hand, mesh: trimesh.Trimesh, gs, grid: sdf_mod.GradientSDF) -> dict[str, np.ndarray]:
     """The grasps' contact and force-closure figures measured on another surface than the one they were filtered
     on (grasps planned from depth frames, checked on the true mesh): `epsilon_true`, `force_closure_true`,
     `contact_dist_true` and `n_contacts_true`, as `epsilon` ... `n_contacts` (torque origin and scale from `grid`,
     as the synthesis)."""
+    grasp_io.check_grasp_set(gs, "check_on_mesh")
     target = make_target(grid)
     dtype = target.sdf.grid.dtype
     ev = device_metrics.evaluate(surface_of(mesh), jnp.asarray(gs["contacts"], dtype), jnp.asarray(gs["q"], dtype),
                                  hand.lower, hand.upper, target.centre, target.radius, metrics_config(gs.config))
     ev = fetch.device_get(ev)
     return {f"{k}_true": np.asarray(ev[k]) for k in ("epsilon", "force_closure", "contact_dist", "n_contacts")}
+
+
+def _first_prediction(gs: GraspSet) -> str:
+    """The first offered grasp's predicted success; with no valid grasp the first offered is not a grasp to use,
+    and a bare figure there read as a good grasp (0 of 32 valid showed "1.00")."""
+    first = gs.order()[0]
+    p = f"{float(gs['pred_success'][first]):.2f}"
+    return p if gs["valid"][first] else f"none valid (the first offered, not valid: {p})"
+
+
+def rejections(gs: GraspSet) -> str:
+    """Why the grasps that are not valid were refused, as "reason count" pairs, the commonest first: with 0 of 32
+    valid (Algorithm 1 as published, a large `d0`) the counts alone said nothing of what to change."""
+    a, cfg = gs.arrays, gs.config
+    tests = {  # the terms of `finish`'s `valid`, each on the arrays a grasp file keeps
+        "hand in the object": ("penetration", lambda x: x > cfg.max_penetration),
+        "tips not all touching": ("n_contacts", lambda x: x != a["contacts"].shape[1]),
+        "no force closure": ("force_closure", lambda x: ~x.astype(bool)),
+        "tips far (E_c)": ("E_c", lambda x: x > cfg.max_contact_rms),
+        "open hand collides": ("pose_collides", lambda x: x.astype(bool)),
+        "palm up": ("palm_up", lambda x: x.astype(bool)),
+        "tips below the table": ("tips_below_table", lambda x: x.astype(bool)),
+        "LP failed": ("lp_ok", lambda x: ~x.astype(bool)),
+    }
+    reasons = {name: test(np.asarray(a[key])) for name, (key, test) in tests.items() if key in a}
+    bad = ~np.asarray(a["valid"], bool)
+    counts = sorted(((int((m & bad).sum()), name) for name, m in reasons.items() if (m & bad).any()), reverse=True)
+    return ", ".join(f"{name} {k}" for k, name in counts) or "-"
 
 
 def summary_rows(gs: GraspSet) -> list[tuple[str, str]]:
@@ -405,10 +439,10 @@ def summary_rows(gs: GraspSet) -> list[tuple[str, str]]:
         ("median E", med("E")),
         ("median E_g", med("E_g")),
         ("median E_c (cm)", med("E_c", 100)),
+        *([("not valid, by reason (a grasp may have several)", rejections(gs))] if not v.all() else []),
         ("median epsilon", med("epsilon")),
         ("median penetration (mm)", med("penetration", 1000)),
-        *([("predicted success: first grasp / median valid", f"{float(gs['pred_success'][gs.order()[0]]):.2f} / "
-                                                              f"{med('pred_success')}")]
+        *([("predicted success: first grasp / median valid", _first_prediction(gs) + f" / {med('pred_success')}")]
           if "pred_success" in gs.arrays and len(v) else []),
         ("ranked by", "predicted success (--rank energy: E)" if ranking.rank_by(gs.arrays) == "predicted"
          else "E, the analytic order"),

@@ -11,8 +11,17 @@ from ffcgs_jax import files
 from ffcgs_jax.errors import FfcgsError
 
 
+def check_grasp_set(gs, caller: str) -> None:
+    """FfcgsError unless `gs` is a `synthesis.grasp.GraspSet` (by its fields: this module cannot import it), the
+    one line naming `caller`, the public function that takes it."""
+    if not (isinstance(getattr(gs, "arrays", None), dict) and hasattr(gs, "config") and hasattr(gs, "object_name")):
+        raise FfcgsError(f"{caller} needs a GraspSet (from fj.synthesize or fj.load_grasps), got "
+                         f"{type(gs).__name__}")
+
+
 def save_npz(gs, path: str | Path) -> None:
     """Write a GraspSet's arrays (and its config as JSON text) to an .npz file."""
+    check_grasp_set(gs, "save_grasps")
     save_arrays({"object_name": np.array(gs.object_name),
                  "config_json": np.array(json.dumps(dataclasses.asdict(gs.config))), **gs.arrays}, path)
 
@@ -62,8 +71,17 @@ def check_arrays(data: dict[str, np.ndarray], path: str | Path) -> dict[str, np.
         check_wrist_poses(data["wrist_pose"], f"grasp file {path}: wrist_pose")
     if len(set(rows.values())) > 1:
         raise bad("its arrays must have one row per grasp, got " + ", ".join(f"{n} in {k}" for k, n in rows.items()))
+    if "channel_names" in data and (data["channel_names"].ndim != 1 or data["channel_names"].dtype.kind != "U"):
+        raise bad(f"channel_names must be a list of strings, got {_show(data['channel_names'])}")
+    # q first: squeeze_dir is measured against q, and a q of the wrong width must not be blamed on squeeze_dir
+    width = len(data["channel_names"]) if "channel_names" in data else None
+    for key in ("q", "squeeze_dir"):
+        if width is not None and key in data and data[key].shape[1] != width:
+            raise bad(f"{key} has {data[key].shape[1]} columns, but the hand the grasps were made for has {width} "
+                      f"channels (its channel_names): {key} must have shape (B, {width})")
     if "squeeze_dir" in data and "q" in data and data["squeeze_dir"].shape != data["q"].shape:
-        raise bad(f"squeeze_dir must have the shape of q {data['q'].shape}, got {data['squeeze_dir'].shape}")
+        raise bad(f"q has {data['q'].shape[1]} columns and squeeze_dir {data['squeeze_dir'].shape[1]}: both have "
+                  "one column per channel of the hand the grasps were made for")
     if "object_scale" in data:
         a = data["object_scale"]
         if a.shape != () or a.dtype.kind not in "iuf" or not (np.isfinite(a) and a > 0):
@@ -71,8 +89,6 @@ def check_arrays(data: dict[str, np.ndarray], path: str | Path) -> dict[str, np.
     for key in _TEXT:
         if key in data and (data[key].shape != () or data[key].dtype.kind != "U"):
             raise bad(f"{key} must be one string, got {_show(data[key])}")
-    if "channel_names" in data and (data["channel_names"].ndim != 1 or data["channel_names"].dtype.kind != "U"):
-        raise bad(f"channel_names must be a list of strings, got {_show(data['channel_names'])}")
     return data
 
 
@@ -82,11 +98,12 @@ def _show(a: np.ndarray) -> str:
 
 
 def check_hand(data: dict[str, np.ndarray], path: str | Path, spec) -> None:
-    """FfcgsError when the grasp file's q does not have the channels of hand spec `spec`."""
+    """FfcgsError when the grasp file's q (or squeeze_dir) does not have the channels of hand spec `spec`."""
     n = len(spec.channel_names)
-    if "q" in data and data["q"].shape[1] != n:
-        raise FfcgsError(f"grasp file {path}: q has {data['q'].shape[1]} channels, hand {spec.name} has {n}: "
-                         "pass --hand with the hand the grasps were made for")
+    for key in ("q", "squeeze_dir"):
+        if key in data and data[key].shape[1] != n:
+            raise FfcgsError(f"grasp file {path}: {key} has {data[key].shape[1]} channels, hand {spec.name} has {n}: "
+                             "pass --hand with the hand the grasps were made for")
 
 
 def load_poses(path: str | Path) -> np.ndarray:

@@ -68,8 +68,9 @@ def expand_objects(objects: Iterable) -> list[ObjectSource]:
     (this function's own output, so a caller may expand, filter, then pass the rest to `synthesize_many`).
 
     Raises:
-        FfcgsError: a folder with no mesh files, an item of another type, or two objects of one name (each
-            object's grasp file is named after it).
+        FfcgsError: a folder with no mesh files, an item of another type, one object given twice (the same
+            built-in name or file, by any path), or two objects of one name (each object's grasp file is named
+            after it).
     """
     out: list[ObjectSource] = []
     for item in objects:
@@ -94,6 +95,10 @@ def expand_objects(objects: Iterable) -> list[ObjectSource]:
     seen: dict[str, ObjectSource] = {}
     for o in out:
         if o.name in seen:
+            if _same(seen[o.name], o):
+                twice = f"{_said(o)!r}" if _said(o) == _said(seen[o.name]) else \
+                    f"{_said(seen[o.name])!r} (also as {_said(o)!r})"
+                raise FfcgsError(f"the same object {twice} is given twice: give each object once")
             raise FfcgsError(f"two objects are named {o.name!r} ({_said(seen[o.name])} and {_said(o)}): each "
                              "object's grasps are named after it, so rename one")
         seen[o.name] = o
@@ -102,6 +107,18 @@ def expand_objects(objects: Iterable) -> list[ObjectSource]:
 
 def _said(o: ObjectSource) -> str:
     return o.source if isinstance(o.source, str) else "a given mesh"
+
+
+def _same(a: ObjectSource, b: ObjectSource) -> bool:
+    """Whether two objects are one: the same built-in name, the same file (by any path to it) or the same mesh."""
+    if not (isinstance(a.source, str) and isinstance(b.source, str)):
+        return a.source is b.source
+    if a.source in builtin.names() or b.source in builtin.names():
+        return a.source == b.source
+    try:
+        return os.path.samefile(a.source, b.source)
+    except OSError:  # a file that is not there: its load says so
+        return Path(a.source).expanduser().resolve() == Path(b.source).expanduser().resolve()
 
 
 def synthesize_many(hand: Hand, objects: Iterable, cfg: GraspConfig = GraspConfig(), *,

@@ -7,6 +7,7 @@ E (the predictions are still computed and stored when a predictor exists). The c
 `rank_by`, so a grasp file is ranked later as it was when written.
 """
 
+import contextlib
 from pathlib import Path
 
 import jax.numpy as jnp
@@ -15,12 +16,14 @@ import numpy as np
 from ffcgs_jax.errors import FfcgsError
 from ffcgs_jax.learning import evaluator
 from ffcgs_jax.learning.weights import load_evaluator, shipped_evaluator
+from ffcgs_jax.runtime import progress
 from ffcgs_jax.runtime.fixed_shapes import pad_rows
 from ffcgs_jax.synthesis.config import RANKS
 
 
 BUCKET = 32
 _LOADED: dict = {}
+_COMPILED: set = set()  # call signatures compiled in this process: only a new one gets the compile's ticker
 
 
 def _load(path: str, hand) -> tuple[dict, dict]:
@@ -66,6 +69,9 @@ def predictions(weights: dict, meta: dict, hand, sdf, arrays: dict) -> dict[str,
     # padded to a multiple of BUCKET rows: every call of up to 32 grasps (and so on) shares one executable
     m = -(-n // BUCKET) * BUCKET
     rows = [pad_rows(np.asarray(arrays[k]), m) for k in ("wrist_pose", "q", "contacts")] + [pad_rows(inputs, m)]
-    p = evaluator.predict(weights, hand, sdf, *(jnp.asarray(r, dt) for r in rows))
+    signature = (m, str(dt), hand.spec, sdf.grid.shape, len(heads))
+    with progress.compiling("the success predictor") if signature not in _COMPILED else contextlib.nullcontext():
+        p = evaluator.predict(weights, hand, sdf, *(jnp.asarray(r, dt) for r in rows))
+    _COMPILED.add(signature)
     p = np.asarray(p, np.float64)[:n]
     return {"pred_success": p[:, -1]} | {f"pred_{h}": p[:, i] for i, h in enumerate(heads[:-1])}

@@ -5,6 +5,7 @@ import trimesh
 from PIL import Image, ImageDraw
 
 from ffcgs_jax.hand.kinematics import Hand
+from ffcgs_jax.synthesis.grasp_io import check_grasp_set
 from ffcgs_jax.viz import render, scene
 
 
@@ -13,6 +14,7 @@ def grasps_image(hand: Hand, mesh: trimesh.Trimesh, gs, k: int = 4, size: int = 
                  order: np.ndarray | None = None) -> tuple[np.ndarray, str]:
     """(k * size, len(views) * size, 3) image of the k best grasps (valid first, by E; or the grasps at `order`)
     with a caption each."""
+    check_grasp_set(gs, "plot_grasps")
     order = gs.order()[:k] if order is None else np.asarray(order)
     rows, used = [], "software"
     coupling = np.asarray(hand.coupling)

@@ -21,6 +21,7 @@ import trimesh
 from ffcgs_jax.errors import FfcgsError
 from ffcgs_jax.evaluation.ranking import ranked
 from ffcgs_jax.hand import kinematics as K
+from ffcgs_jax.synthesis.grasp_io import check_grasp_set
 
 PROTOCOL_KEYS = ("lift_shake_success", "six_dir_success", "dexgraspbench_success")
 COLOURS = {"all": (60, 180, 75), "some": (245, 150, 40), "none": (220, 50, 50), "untested": (150, 150, 150),
@@ -169,6 +170,7 @@ def free_port() -> int:
 def show_grasps(hand: K.Hand, mesh: trimesh.Trimesh, gs, **kw) -> GraspView:
     """`show` for a `synthesis.grasp.GraspSet` (what `synthesize` returns), e.g. in a notebook: `fj.show`, its
     arguments in `synthesize`'s order."""
+    check_grasp_set(gs, "show")
     return show({**gs.arrays, "config_json": json.dumps(dataclasses.asdict(gs.config))}, hand, mesh, **kw)
 
 
