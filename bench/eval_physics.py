@@ -84,7 +84,7 @@ def report(rows: list[dict]) -> None:
         cat = lambda k: np.concatenate([np.asarray(r[k], bool) for r in rs])  # noqa: E731
         v, ls, sd = cat("valid"), cat("lift_shake_success"), cat("six_dir_success")
         print(f"| {s} | {mu} | {_rate(ls[v])} | {_rate(sd[v])} | {_rate((ls & sd)[v])} | {_rate(ls)} | {_rate(sd)} |")
-    print("\nFailure reasons over valid grasps (penetration / lost / slip), and palm contact among failures:\n")
+    print("\nFailure reasons over valid grasps (penetration / lost / slip / unstable), and palm contact among failures:\n")
     print("| sampler | friction | protocol | penetration | lost | slip | palm touching at start |")
     print("|---|---|---|---|---|---|---|")
     for s, mu in keys:
@@ -94,7 +94,7 @@ def report(rows: list[dict]) -> None:
         for p in ("lift_shake", "six_dir"):
             reason = np.concatenate([np.asarray(r[f"{p}_reason"]) for r in rs])[v]
             fail = reason > 0
-            counts = " | ".join(str(int((reason == i).sum())) for i in (1, 2, 3))
+            counts = " | ".join(str(int((reason == i).sum())) for i in (1, 2, 3, 4))
             print(f"| {s} | {mu} | {p.replace('_', '-')} | {counts} | {int(palm[v][fail].sum())}/{int(fail.sum())} |")
     print("\nQuality of the same grasps (medians over valid grasps; E_c in cm):\n")
     print("| sampler | valid | E | E_g | E_c | epsilon | epsilon > 0 |")

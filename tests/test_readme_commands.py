@@ -4,14 +4,17 @@ verbatim), line by line in a fresh folder, with `FFCGS_SMOKE=1` cutting the long
 What a user brings is made first: `my_part.stl` (a mesh in millimetres) and `meshes/` (a folder of meshes), and
 the names README leaves to the user are set (`HEAD`, the Ray head host: this machine; `SHARED`, a folder every host
 sees). A command that serves a web page until Ctrl-C (`ffcgs show`, `--show`) must print its address; it is then
-interrupted. Nothing here is skipped: a README line that cannot run as written is a README bug.
+interrupted. A block that starts Ray nodes runs as one script in a PID namespace of its own (`unshare`, root), so
+its nodes end with it. Nothing here is skipped: a README line that cannot run as written is a README bug.
 """
 
 import os
 import re
+import shutil
 import signal
 import subprocess
 import sys
+import tempfile
 import time
 from pathlib import Path
 
@@ -123,20 +126,32 @@ def test_readme_block_runs_as_written(lines, tmp_path, tmp_path_factory):
     folder = tmp_path / "work"
     folder.mkdir()
     _user_files(folder)
-    for name in ("configs",):  # README's paths into the checkout (`--config configs/paper.toml`)
-        os.symlink(REPO / name, folder / name)
+    os.symlink(REPO / "configs", folder / "configs")  # README's paths into the checkout (`--config configs/...`)
     env = _env(folder, tmp_path_factory.getbasetemp() / "readme-cache")
-    ray_started = False
+    if any(line.startswith("ray ") for line in lines):
+        _run_cluster_block(lines, folder, env)
+        return
+    for line in lines:
+        if _serves(line):
+            _run_served(line, folder, env)
+            continue
+        r = subprocess.run(line, shell=True, cwd=folder, env=env, capture_output=True, text=True, timeout=1800)
+        assert r.returncode == 0, f"README's {line!r} failed ({r.returncode}):\n{r.stdout[-2000:]}\n{r.stderr[-3000:]}"
+        assert "Traceback" not in r.stderr, f"{line!r}:\n{r.stderr[-3000:]}"
+
+
+def _run_cluster_block(lines: list[str], folder: Path, env: dict) -> None:
+    """A block that starts Ray nodes (`ray start`): as one script in a PID namespace of its own, so that the nodes
+    it starts end with it and no other Ray instance of the machine (the data engine's tests) is touched, with
+    Ray's files in a folder of its own (a short path: Ray's sockets live there)."""
+    ray_tmp = tempfile.mkdtemp(prefix="ray", dir="/tmp")
     try:
-        for line in lines:
-            ray_started |= line.startswith("ray start")
-            if _serves(line):
-                _run_served(line, folder, env)
-                continue
-            r = subprocess.run(line, shell=True, cwd=folder, env=env, capture_output=True, text=True, timeout=1800)
-            assert r.returncode == 0, f"README's {line!r} failed ({r.returncode}):\n{r.stdout[-2000:]}\n" \
-                                      f"{r.stderr[-3000:]}"
-            assert "Traceback" not in r.stderr, f"{line!r}:\n{r.stderr[-3000:]}"
+        script = "set -e\n" + "\n".join(lines) + "\n"
+        r = subprocess.run(["unshare", "--pid", "--fork", "--mount-proc", "--kill-child", "bash", "-c", script],
+                           cwd=folder, env=dict(env, RAY_TMPDIR=ray_tmp), capture_output=True, text=True,
+                           timeout=1800)
+        assert r.returncode == 0, f"README's Ray block failed ({r.returncode}):\n{r.stdout[-3000:]}\n" \
+                                  f"{r.stderr[-4000:]}"
+        assert "Traceback" not in r.stderr, r.stderr[-4000:]
     finally:
-        if ray_started:
-            subprocess.run("ray stop --force", shell=True, env=env, capture_output=True, timeout=120)
+        shutil.rmtree(ray_tmp, ignore_errors=True)
