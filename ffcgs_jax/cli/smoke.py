@@ -5,7 +5,7 @@ before committing hours to it. A dataset build of 2,000 objects, 100 training ep
 would take hours on a 2-core CPU; under `FFCGS_SMOKE` they keep every option that shapes the work (sampler, hand,
 protocols, output format), and only the counts shrink: at most `OBJECTS` generated objects (enough for the five
 cross-validation folds), `CANDIDATES` candidates per object and one rotation, a planner of `POPULATION` poses for
-`STEPS` steps, one training epoch, the first value of each swept setting, one benchmark batch of 32, and grasp
+`STEPS` steps, one training epoch of batches of at most `BATCH`, the first value of each swept setting, one benchmark batch of 32, and grasp
 batches of at most `GRASPS`. The command says so in one line on stderr. Results are not meant to be good, only to
 come out of the same code path.
 """
@@ -21,11 +21,12 @@ CANDIDATES = 4
 POPULATION = 64
 STEPS = 10
 GRASPS = 64
+BATCH = 8  # a smoke build's few grasps still make a batch
 
 
 def active() -> bool:
     """Whether `FFCGS_SMOKE` is set to anything but "", "0", "off" or "false"."""
-    return os.environ.get(ENV, "").strip().lower() not in ("", "0", "off", "false", "no")
+    return os.environ.get("FFCGS_SMOKE", "").strip().lower() not in ("", "0", "off", "false", "no")
 
 
 def _cap(value: int, most: int) -> int:
@@ -53,7 +54,8 @@ def _bench(cmd):
 
 
 def _train(cfg):
-    return dataclasses.replace(cfg, optim=dataclasses.replace(cfg.optim, epochs=1))
+    return dataclasses.replace(cfg, optim=dataclasses.replace(cfg.optim, epochs=1, batch=_cap(cfg.optim.batch,
+                                                                                          BATCH)))
 
 
 def sweep(grid: list[tuple[str, list]]) -> list[tuple[str, list]]:

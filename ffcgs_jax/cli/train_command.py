@@ -231,6 +231,11 @@ def main(argv: list[str] | None = None, prog: str = "ffcgs train", name: str = "
         except FfcgsError as e:
             raise FfcgsError(other_model_hint(str(e), model)) from None
         cfg = smoke.scaled("train", cfg)  # FFCGS_SMOKE: one epoch, a sweep's first point
+        from ffcgs_jax.runtime import jax_cache
+
+        # as the other commands: a fold, a sweep point or a resumed run loads the training step's executables
+        # from disk instead of compiling them again (minutes on a CPU; FFCGS_JAX_CACHE=off: compile every time)
+        jax_cache.enable()
         if specs:
             run_sweep(cfg, smoke.sweep(parse_sweep(cfg, specs)))
         else:

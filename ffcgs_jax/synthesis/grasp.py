@@ -221,6 +221,7 @@ def synthesize(hand: Hand, mesh: trimesh.Trimesh | sdf_mod.GradientSDF, cfg: Gra
     prediction.resolve(cfg.rank, hand, cfg.evaluator)  # a bad predictor file is one line before any compile
     if poses is None:
         samplers.sampler_params(cfg.sampler, hand, cfg.sampling)  # and so is a bad sampler weights file
+    device_mesh(cfg.devices)  # and more devices than the machine has
     clock = compile_clock.compiling
     # The ahead-of-time compiles are timed where they happen; whatever else compiles during the call (a
     # process's first call: the SDF build, the target, the packing of the results) is counted by `clock` and moved
