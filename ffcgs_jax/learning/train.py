@@ -249,7 +249,10 @@ def train(cfg: TrainConfig, hand: str | None = None, progress: bool = True, unti
 
     grids = (jnp.asarray(data.grids), jnp.asarray(data.origin), jnp.asarray(data.voxel_size))
     pose = jnp.asarray(data.pose)
-    chunk = min(cfg.steps_per_call, steps_per_epoch)
+    # always `steps_per_call` steps per call, the ones past the epoch's end masked off (`live`): an executable's
+    # shapes then do not depend on the dataset's size, so the folds of a cross-validation, a sweep's points and a
+    # resumed run share one compile instead of one each (minutes on a CPU)
+    chunk = cfg.steps_per_call
     t_start = time.perf_counter()
     # drawn from its first update on (`delay`): before it, the first step's compile has its own line
     bar = tqdm(total=total, initial=start_epoch * steps_per_epoch, desc=f"train {out.name}", unit="step",
