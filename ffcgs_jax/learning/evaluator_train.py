@@ -94,10 +94,10 @@ def figures(prob: np.ndarray, data: evaluator_data.LabelData, rows: np.ndarray) 
     out["within_auc_valid"], out["within_objects"] = rank_metrics.within_auc(p[v], y[v], obj[v])
     out["within_auc_all"], _ = rank_metrics.within_auc(p, y, obj)
     out["within_auc_valid_minus_E"], _ = rank_metrics.within_auc(-data.E[rows][v], y[v], obj[v])
-    if v.any():
-        out["top1_pred"] = float(rank_metrics.top_k(p[v], y[v], obj[v]).mean())
-        out["top1_E"] = float(rank_metrics.top_k(-data.E[rows][v], y[v], obj[v]).mean())
-        out["top1_random"] = float(rank_metrics.random_top1(y[v], obj[v]).mean())
+    # NaN without a valid grasp (a small fold): the keys are always there for the log, the picture and cv.md
+    out["top1_pred"] = float(rank_metrics.top_k(p[v], y[v], obj[v]).mean()) if v.any() else math.nan
+    out["top1_E"] = float(rank_metrics.top_k(-data.E[rows][v], y[v], obj[v]).mean()) if v.any() else math.nan
+    out["top1_random"] = float(rank_metrics.random_top1(y[v], obj[v]).mean()) if v.any() else math.nan
     out["ece"] = rank_metrics.reliability(p, y)["ece"]
     return out
 
@@ -245,8 +245,11 @@ def cv_table(rows: list[dict]) -> str:
         lines.append(f"| {r['fold']} | {len(r['val_objects'])} | {r['val_within_auc_valid']:.3f} | "
                      f"{r['val_auc_all']:.3f} | {r['val_top1_pred']:.1%} | {r['val_top1_E']:.1%} | "
                      f"{r['val_top1_random']:.1%} |")
-    mean = lambda k: float(np.mean([r[k] for r in rows]))  # noqa: E731
-    std = lambda k: float(np.std([r[k] for r in rows]))  # noqa: E731
+    def measured(k):  # the folds that could measure figure k (NaN: no valid grasp among its held-out objects)
+        return [r[k] for r in rows if not math.isnan(r[k])] or [math.nan]
+
+    mean = lambda k: float(np.mean(measured(k)))  # noqa: E731
+    std = lambda k: float(np.std(measured(k)))  # noqa: E731
     lines.append(f"\nover {len(rows)} folds: within-object AUC {mean('val_within_auc_valid'):.3f} ± "
                  f"{std('val_within_auc_valid'):.3f}, pooled AUC {mean('val_auc_all'):.3f}, top-1 predicted "
                  f"{mean('val_top1_pred'):.1%} (E {mean('val_top1_E'):.1%}, random {mean('val_top1_random'):.1%})")
