@@ -123,7 +123,7 @@ def test_a_lock_serialises_updates_and_leaves_no_lock_file(tmp_path, capsys):
     def first():
         with locks.locked(path):
             held.set()
-            time.sleep(0.5)
+            time.sleep(2.0)  # long enough that the second surely asks while it is held, even on a loaded machine
             order.append("first done")
 
     t = threading.Thread(target=first)
@@ -157,9 +157,10 @@ def test_a_lock_of_a_killed_run_is_free_and_cleaned(tmp_path):
         with locks.locked(path):
             done.set()
 
-    threading.Thread(target=lock_and_release, daemon=True).start()
+    t = threading.Thread(target=lock_and_release, daemon=True)
+    t.start()
     assert done.wait(5), "the lock of a killed run was not released"
-    time.sleep(0.1)
+    t.join(5)
     assert not locks.lock_file(path).exists()  # released: removed
     locks.lock_file(path).write_bytes(b"")  # as a killed run leaves it
     assert files.remove_left_behind(tmp_path) == 1 and not locks.lock_file(path).exists()

@@ -41,7 +41,7 @@ def test_a_terminal_sees_one_line_redrawn_every_tick_then_how_it_ended(record, m
     out = Terminal()
     with progress.compiling("the synthesis", show=True, stream=out, tick_s=0.02, quiet_s=0.0):
         _compile_something(1.5)
-        time.sleep(0.2)
+        time.sleep(0.5)  # 25 ticks: 5 leave room for a ticker thread starved on a loaded machine
     text = out.getvalue()
     frames = [f.removesuffix("\x1b[K") for f in text.rstrip("\n").split("\r") if f]
     assert text.endswith("\n") and text.count("\n") == 1, repr(text)  # one line on the screen
@@ -63,13 +63,15 @@ def test_a_line_wider_than_the_terminal_is_shortened_so_that_it_can_be_redrawn(r
 
 def test_a_log_gets_a_line_every_log_every_s_not_every_tick(record):
     out = io.StringIO()
+    t0 = time.perf_counter()
     with progress.compiling("the evaluation", show=True, stream=out, tick_s=0.01, log_every_s=0.1, quiet_s=0.0):
         _compile_something(2.5)
         time.sleep(0.45)
+    seconds = time.perf_counter() - t0  # the compile's share depends on the machine: the bound follows it
     lines = out.getvalue().splitlines()
     assert "\r" not in out.getvalue()
     ticks = [ln for ln in lines if ln.startswith("compiling the evaluation")]
-    assert 3 <= len(ticks) <= 7, lines  # ~45 ticks, ~5 lines
+    assert 2 <= len(ticks) <= seconds / 0.1 + 2, (seconds, lines)  # a line per 0.1 s, not one per 0.01 s tick
     assert re.fullmatch(r"compiled the evaluation in \d+ s", lines[-1]), lines
 
 
