@@ -17,7 +17,7 @@ from collections.abc import Callable
 import numpy as np
 import trimesh
 
-from ffcgs_jax.errors import FfcgsError
+from ffcgs_jax.errors import FfcgsError, check_grasp_set
 from ffcgs_jax.evaluation import ranking
 from ffcgs_jax.hand.spec import HandSpec
 from ffcgs_jax.physics import protocols as physics_protocols
@@ -54,9 +54,7 @@ def validate(hand, mesh: trimesh.Trimesh, grasps, protocols=PROTOCOLS, cfg: Phys
     """
     if candidates not in ("valid", "all"):
         raise FfcgsError(f"candidates must be 'valid' or 'all', got {candidates!r}")
-    if not isinstance(getattr(grasps, "arrays", None), dict):  # a GraspSet by its fields: physics does not import it
-        raise FfcgsError(f"validate needs a GraspSet (from fj.synthesize or fj.load_grasps), got "
-                         f"{type(grasps).__name__}")
+    check_grasp_set(grasps, "validate")
     tested = np.ones(len(grasps["q"]), bool) if candidates == "all" else np.asarray(grasps["valid"], bool)
     arrays = check(getattr(hand, "spec", hand), mesh, grasps.arrays, tested, protocols, cfg, progress, need)
     return dataclasses.replace(grasps, arrays=arrays)

@@ -25,7 +25,7 @@ from jax.sharding import PartitionSpec as P
 
 from ffcgs_jax.config import check_all
 from ffcgs_jax.config import from_dict as config_from_dict
-from ffcgs_jax.errors import FfcgsError
+from ffcgs_jax.errors import FfcgsError, check_grasp_set
 from ffcgs_jax.evaluation import device_metrics, metrics, ranking, score
 from ffcgs_jax.geometry import sdf as sdf_mod
 from ffcgs_jax.hand import kinematics as K
@@ -393,7 +393,7 @@ def check_on_mesh(hand: Hand, mesh: trimesh.Trimesh, gs, grid: sdf_mod.GradientS
     on (grasps planned from depth frames, checked on the true mesh): `epsilon_true`, `force_closure_true`,
     `contact_dist_true` and `n_contacts_true`, as `epsilon` ... `n_contacts` (torque origin and scale from `grid`,
     as the synthesis)."""
-    grasp_io.check_grasp_set(gs, "check_on_mesh")
+    check_grasp_set(gs, "check_on_mesh")
     target = make_target(grid)
     dtype = target.sdf.grid.dtype
     ev = device_metrics.evaluate(surface_of(mesh), jnp.asarray(gs["contacts"], dtype), jnp.asarray(gs["q"], dtype),

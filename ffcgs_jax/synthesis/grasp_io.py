@@ -8,15 +8,7 @@ from pathlib import Path
 import numpy as np
 
 from ffcgs_jax import files
-from ffcgs_jax.errors import FfcgsError
-
-
-def check_grasp_set(gs, caller: str) -> None:
-    """FfcgsError unless `gs` is a `synthesis.grasp.GraspSet` (by its fields: this module cannot import it), the
-    one line naming `caller`, the public function that takes it."""
-    if not (isinstance(getattr(gs, "arrays", None), dict) and hasattr(gs, "config") and hasattr(gs, "object_name")):
-        raise FfcgsError(f"{caller} needs a GraspSet (from fj.synthesize or fj.load_grasps), got "
-                         f"{type(gs).__name__}")
+from ffcgs_jax.errors import FfcgsError, check_grasp_set
 
 
 def save_npz(gs, path: str | Path) -> None:

@@ -18,10 +18,9 @@ import mujoco
 import numpy as np
 import trimesh
 
-from ffcgs_jax.errors import FfcgsError
+from ffcgs_jax.errors import FfcgsError, check_grasp_set
 from ffcgs_jax.evaluation.ranking import ranked
 from ffcgs_jax.hand import kinematics as K
-from ffcgs_jax.synthesis.grasp_io import check_grasp_set
 
 PROTOCOL_KEYS = ("lift_shake_success", "six_dir_success", "dexgraspbench_success")
 COLOURS = {"all": (60, 180, 75), "some": (245, 150, 40), "none": (220, 50, 50), "untested": (150, 150, 150),
