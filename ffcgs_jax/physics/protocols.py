@@ -42,20 +42,21 @@ def wilson(successes: int, n: int, confidence: float = 0.95) -> tuple[float, flo
 
 
 
-def _steps(seconds: float, dt: float) -> int:
+def steps(seconds: float, dt: float) -> int:
+    """Simulation steps of `seconds` at timestep dt (at least one)."""
     return max(1, int(round(seconds / dt)))
 
 
 
 def closing(batch: Batch, cfg: PhysicsConfig) -> list[Segment]:
-    n = _steps(cfg.close_time, cfg.timestep)
+    n = steps(cfg.close_time, cfg.timestep)
     zero = np.zeros((1, 3))
 
     def ramp(i0, i1):
         s = (np.arange(i0, i1) + 1.0) / n
         return batch.q_start[:, None] + s[None, :, None] * (batch.q_target - batch.q_start)[:, None], zero
 
-    settle = Segment(_steps(cfg.settle_time, cfg.timestep), lambda i0, i1: (batch.q_target[:, None], zero), hold=True)
+    settle = Segment(steps(cfg.settle_time, cfg.timestep), lambda i0, i1: (batch.q_target[:, None], zero), hold=True)
     return [Segment(n, ramp, hold=True), settle]
 
 
@@ -63,9 +64,9 @@ def closing(batch: Batch, cfg: PhysicsConfig) -> list[Segment]:
 def lift_shake(batch: Batch, cfg: PhysicsConfig) -> list[Segment]:
     dt = cfg.timestep
     hold = batch.q_target[:, None]
-    n_lift = _steps(cfg.lift_height / cfg.lift_speed, dt)
+    n_lift = steps(cfg.lift_height / cfg.lift_speed, dt)
     period = 4 * cfg.shake_amplitude / cfg.shake_speed
-    n_shake = _steps(cfg.shake_cycles * period, dt) if cfg.shake_cycles else 0
+    n_shake = steps(cfg.shake_cycles * period, dt) if cfg.shake_cycles else 0
 
     def lift(i0, i1):
         u = (np.arange(i0, i1) + 1.0) / n_lift
@@ -84,14 +85,14 @@ def lift_shake(batch: Batch, cfg: PhysicsConfig) -> list[Segment]:
         return hold, off
 
     up = np.array([[0.0, 0.0, cfg.lift_height]])
-    segs = [Segment(n_lift, lift), Segment(_steps(LIFT_HOLD, dt), lambda i0, i1: (hold, up))]
+    segs = [Segment(n_lift, lift), Segment(steps(LIFT_HOLD, dt), lambda i0, i1: (hold, up))]
     return segs + ([Segment(n_shake, shake)] if n_shake else [])
 
 
 
 def push(batch: Batch, cfg: PhysicsConfig, direction: np.ndarray, mass: float) -> Segment:
     zero = np.zeros((1, 3))
-    return Segment(_steps(cfg.push_time, cfg.timestep), lambda i0, i1: (batch.q_target[:, None], zero),
+    return Segment(steps(cfg.push_time, cfg.timestep), lambda i0, i1: (batch.q_target[:, None], zero),
                    force=cfg.accel * mass * direction)
 
 
@@ -243,7 +244,7 @@ def grasp_and_squeeze(batch: Batch, cfg: PhysicsConfig) -> list[Segment]:
     first step already moves: the targets at the end of step k of K are k/K of the way)."""
     if batch.q_grasp is None:
         raise FfcgsError("DexGraspBench's protocol needs the grasps' q (Batch.q_grasp): prepare them on its scene")
-    n = _steps(dgb.STAGE_TIME, cfg.timestep)
+    n = steps(dgb.STAGE_TIME, cfg.timestep)
     zero = np.zeros((1, 3))
 
     def stage(a: np.ndarray, b: np.ndarray) -> Segment:
@@ -259,7 +260,7 @@ def grasp_and_squeeze(batch: Batch, cfg: PhysicsConfig) -> list[Segment]:
 def bench_push(batch: Batch, cfg: PhysicsConfig, direction: np.ndarray, mass: float) -> Segment:
     """DexGraspBench's push: `cfg.accel` x mass along `direction` for `cfg.push_time`, targets held at the squeeze."""
     zero = np.zeros((1, 3))
-    return Segment(_steps(cfg.push_time, cfg.timestep), lambda i0, i1: (batch.q_target[:, None], zero),
+    return Segment(steps(cfg.push_time, cfg.timestep), lambda i0, i1: (batch.q_target[:, None], zero),
                    force=cfg.accel * mass * direction)
 
 
@@ -290,7 +291,7 @@ def _run_bench(sim: Simulator, batch: Batch, depth: np.ndarray, cfg: PhysicsConf
         lost[held] = ~_probe(sim, squeezed, batch, held, b)["touch"][held]
         where = np.zeros(b, np.int64)
         where[held] = np.arange(len(held))  # row of each grasp in the squeezed states
-        every = _steps(dgb.CHECK_TIME, cfg.timestep)
+        every = steps(dgb.CHECK_TIME, cfg.timestep)
         failed |= unstable
         for k, direction in enumerate(DIRECTIONS):
             rows = np.flatnonzero(~failed)
