@@ -48,6 +48,7 @@ rules are in `protocols`, the backends' interface in `backend`.
 
 import dataclasses
 import os
+import time
 from collections.abc import Callable
 
 import mujoco
@@ -65,32 +66,33 @@ from ffcgs_jax.physics.config import ALL_PROTOCOLS, BACKENDS, PROTOCOLS, Physics
 from ffcgs_jax.physics.protocols import result_key, run_protocol
 from ffcgs_jax.physics.scene import PhysicsScene
 
-# One H100 with a 16-core host (bench/RESULTS.md): warp costs about 4 s per protocol pair to start plus 1/265 s per
-# grasp; CPU MuJoCo about 0.8 core-seconds per grasp. Warp wins from about 6 grasps per core.
-WARP_GRASPS_PER_CORE = 6
 # m beyond the hand's reach before a wrist pose is refused: hull parts may bulge past the mesh a little, and a grasp
 # just out of reach is a legitimate failure ("lost") rather than a wrong input
 REACH_MARGIN = 0.1
+MEASURED_BATCH = 8  # grasps from which a CPU run's time is recorded for `auto` (fewer: mostly start-up noise)
 
 
-def resolve_backend(name: str, n: int | None = None) -> tuple[str, str | None]:
-    """The backend `name` ("auto" or one of `config.BACKENDS`) runs `n` grasps on here, and for "auto" falling
-    back to the CPU, why (one line). "auto" is MuJoCo Warp when it is installed, a CUDA device is present and the
-    batch is large enough to pay for its start-up (`WARP_GRASPS_PER_CORE` per CPU core), else CPU MuJoCo."""
+def resolve_backend(name: str, n: int | None = None, protocols=PROTOCOLS, cfg: PhysicsConfig | None = None
+                    ) -> tuple[str, str | None]:
+    """The backend `name` ("auto" or one of `config.BACKENDS`) runs `n` grasps under `protocols` on here, and for
+    "auto" falling back to the CPU, why (one line). "auto" is MuJoCo Warp when it is installed, a CUDA device is
+    present and it is the faster here for this batch by the costs measured on this machine (`cost.choose`: the
+    CPU's core-seconds per grasp against Warp's seconds per step and start-up), else CPU MuJoCo. Without `n`, Warp
+    wherever it can run."""
     if name not in BACKENDS:
         raise FfcgsError(f"unknown physics backend {name!r}; backends: {', '.join(BACKENDS)}")
     if name != "auto":
         return name, None
-    from ffcgs_jax.physics import backend_warp
+    from ffcgs_jax.physics import backend_warp, cost, worlds
 
     if backend_warp.no_cuda():  # first: it starts nothing where there is no driver
         return "cpu", "physics on the CPU: no CUDA device for MuJoCo Warp"
     if backend_warp.unavailable():
         return "cpu", 'physics on the CPU: MuJoCo Warp is not installed (pip install -e ".[warp]" on a CUDA machine)'
-    least = WARP_GRASPS_PER_CORE * (os.cpu_count() or 1)
-    if n is not None and n < least:
-        return "cpu", f"physics on the CPU: {n} grasps are too few for MuJoCo Warp to pay off here (from {least})"
-    return "warp", None
+    if n is None:
+        return "warp", None
+    cfg = cfg or PhysicsConfig()
+    return cost.choose(int(n), tuple(protocols), cfg, cfg.workers or os.cpu_count() or 1, worlds.warm())
 
 
 def scenes(spec: HandSpec, mesh: trimesh.Trimesh, cfg: PhysicsConfig, protocols, table_z: float | None = None,
@@ -282,68 +284,136 @@ def evaluate(spec: HandSpec, mesh: trimesh.Trimesh, wrist_pose, q, cfg: PhysicsC
     `parts`: the object's collision geometry as convex (vertices, faces) pairs; default `convex.decompose(mesh, cfg)`.
 
     CPU runs the grasps in groups of `GROUP_PER_THREAD` x threads, so `progress(k)` (k grasps done) ticks often;
-    MJX runs them as one batch, warp in batches of up to `backend_warp.MAX_WORLDS` worlds; grasps whose warp
-    contacts or constraints overflowed their buffers are run again on the CPU (`physics_rerun_cpu` marks them).
+    MJX runs them as one batch; warp runs every grasp, protocol and push direction as a world of the same launches
+    (`worlds`); grasps whose warp contacts or constraints overflowed their buffers are run again on the CPU
+    (`physics_rerun_cpu` marks them).
     Returns flat per-grasp arrays for an npz: initial_penetration, palm_contact and, per protocol p (with '-'
     written '_'), p_success, p_reason (index into protocols.REASONS), p_move (m), p_rot (degrees) and for six-dir
     and DexGraspBench's protocols p_move_dir, p_rot_dir (B, 6); for DexGraspBench's also p_pregrasp_penetration (m,
     the depth its penetration rule reads). A grasp whose simulation diverged fails with reason "unstable"; wrist
     poses out of the hand's reach of the object are refused before anything is simulated (`check_reach`).
 
-    DexGraspBench's protocols (`dexgraspbench`) run on CPU MuJoCo only: with `cfg.backend` "auto" they do so
-    whatever `backend` resolved to; an explicit "warp" or "mjx" is refused before anything is simulated."""
+    On "warp" every protocol (DexGraspBench's too, with MuJoCo Warp's no-slip solver) runs as the worlds of one
+    launch (`worlds`): each grasp, protocol and push direction a world."""
+    return evaluate_many(spec, [Item(mesh, wrist_pose, q, squeeze_dir, table_z, parts)], cfg, protocols, backend,
+                         progress)[0]
+
+
+@dataclasses.dataclass(frozen=True)
+class Item:
+    """One object's grasps for `evaluate_many`: as `evaluate`'s arguments of the same names."""
+
+    mesh: trimesh.Trimesh
+    wrist_pose: np.ndarray
+    q: np.ndarray
+    squeeze_dir: np.ndarray | None = None
+    table_z: float | None = None
+    parts: list | None = None
+
+
+def evaluate_many(spec: HandSpec, items: list[Item], cfg: PhysicsConfig = PhysicsConfig(), protocols=PROTOCOLS,
+                  backend: str | None = None, progress: Callable[[int], None] | None = None,
+                  threads: int | None = None) -> list[dict[str, np.ndarray]]:
+    """`evaluate` for many objects at once: one result dict per item, in order. On MuJoCo Warp the grasps of every
+    object are worlds of the same launches (`worlds.run_jobs`), and each object's collision geometry, scenes and
+    grasp plan are built on `threads` CPU threads (default: the cores, at most 8) while the GPU simulates the
+    objects before it. On the CPU the objects run one after another."""
     cfg.check()
     protocols = tuple(protocols)
     for p in protocols:
         if p not in ALL_PROTOCOLS:
             raise FfcgsError(f"unknown protocol {p!r}; protocols: {', '.join(ALL_PROTOCOLS)}")
-    if len(np.asarray(q).reshape(-1)) == 0:
-        raise FfcgsError("no grasps to test")
-    check_reach(spec, mesh, wrist_pose)
+    for it in items:
+        if len(np.asarray(it.q).reshape(-1)) == 0:
+            raise FfcgsError("no grasps to test")
+        check_reach(spec, it.mesh, it.wrist_pose)
     asked = cfg.backend if backend is None else backend
-    backend, _ = resolve_backend(asked, int(np.shape(q)[0]))
-    bench = [p for p in protocols if dgb.is_bench(p)]
-    if bench and backend != "cpu" and "auto" not in (asked, cfg.backend):
-        raise FfcgsError(f"protocol {bench[0]} runs on the CPU backend only (MuJoCo's no-slip solver, which "
-                         f"{backend} lacks): use --backend cpu or auto")
+    backend, _ = resolve_backend(asked, sum(int(np.shape(it.q)[0]) for it in items), protocols, cfg)
     tick = progress or (lambda n: None)
-    built = scenes(spec, mesh, cfg, protocols, table_z, parts)
+    if backend == "warp":
+        return _on_worlds(spec, items, cfg, protocols, tick, threads)
+    return [_on_simulator(spec, it, cfg, protocols, backend, tick) for it in items]
+
+
+def _prepared(spec: HandSpec, it: Item, cfg: PhysicsConfig, protocols) -> tuple[dict, dict]:
+    """An object's scenes, its result arrays so far (penetration, palm contact) and per protocol (batch, depth,
+    protocol config)."""
+    built = scenes(spec, it.mesh, cfg, protocols, it.table_z, it.parts)
     # the scenes differ only in gravity, table, the hold weld and contact softness and friction, none of which the
     # hand-object contacts, the fingertip Jacobians or the squeeze direction depend on: read the grasps once
-    grasps = _grasps(built[protocols[0]], mesh, wrist_pose, q, cfg, squeeze_dir)
+    grasps = _grasps(built[protocols[0]], it.mesh, it.wrist_pose, it.q, cfg, it.squeeze_dir)
     out: dict[str, np.ndarray] = {"initial_penetration": grasps.depth, "palm_contact": grasps.palm}
-    if backend == "warp" and len(bench) < len(protocols):  # the others have no buffers to overflow
-        out["physics_rerun_cpu"] = np.zeros(len(grasps.depth), bool)
+    plans = {}
     for p, scene in built.items():
         pcfg = dgb.config(cfg, p) if dgb.is_bench(p) else cfg
         batch, depth = _plan(scene, grasps, pcfg)
         if dgb.is_bench(p):
             out[result_key(p, "pregrasp_penetration")] = depth
-        if backend == "cpu" or dgb.is_bench(p):
+        plans[p] = (scene, batch, depth, pcfg)
+    return out, plans
+
+
+def _on_simulator(spec: HandSpec, it: Item, cfg: PhysicsConfig, protocols, backend: str, tick) -> dict:
+    from ffcgs_jax.physics import cost
+
+    out, plans = _prepared(spec, it, cfg, protocols)
+    for p, (scene, batch, depth, pcfg) in plans.items():
+        t0 = time.perf_counter()
+        if backend == "cpu":
             sim = CpuSim(scene, cfg.workers)
             group = GROUP_PER_THREAD * sim.nthread
-        elif backend == "mjx":
+        else:
             from ffcgs_jax.physics.backend_mjx import MjxSim
 
             sim, group = MjxSim(scene), len(depth)
-        else:
-            from ffcgs_jax.physics.backend_warp import MAX_WORLDS, WarpSim
-
-            group = min(len(depth), MAX_WORLDS)
-            sim = WarpSim(scene, group)
         parts = []
         for i in range(0, len(depth), group):
             rows = slice(i, i + group)
             part = run_protocol(sim, batch.rows(rows), depth[rows], pcfg, p)
-            flagged = part.pop("flagged")
-            if flagged.any():
-                part = _rerun_on_cpu(scene, pcfg, p, batch.rows(rows), depth[rows], part, flagged)
-                out["physics_rerun_cpu"][rows] |= flagged
+            part.pop("flagged")
             parts.append(part)
             tick(len(depth[rows]))
         for k in parts[0]:
             out[result_key(p, k)] = np.concatenate([r[k] for r in parts])
+        if backend == "cpu" and len(depth) >= MEASURED_BATCH:  # what `auto` weighs the next batch by
+            cost.remember_cpu(p, (time.perf_counter() - t0) * sim.nthread / len(depth))
     return out
+
+
+def _on_worlds(spec: HandSpec, items: list[Item], cfg: PhysicsConfig, protocols, tick, threads) -> list[dict]:
+    """Every object, protocol and grasp of `items` as worlds of MuJoCo Warp launches; the CPU prepares the
+    objects in order on a thread pool while the GPU runs the ones before; grasps whose worlds overflowed their
+    buffers run again on the CPU (`physics_rerun_cpu`)."""
+    import concurrent.futures
+
+    from ffcgs_jax.physics import worlds
+
+    outs: list[dict] = [None] * len(items)  # type: ignore[list-item]
+    plans: list[dict] = [None] * len(items)  # type: ignore[list-item]
+    order: list[tuple[int, str]] = []
+    n = threads or min(8, os.cpu_count() or 1)
+
+    def jobs():
+        with concurrent.futures.ThreadPoolExecutor(n, thread_name_prefix="ffcgs-geometry") as pool:
+            futures = [pool.submit(_prepared, spec, it, cfg, protocols) for it in items]
+            for i, f in enumerate(futures):
+                outs[i], plans[i] = f.result()
+                for p, (scene, batch, depth, pcfg) in plans[i].items():
+                    order.append((i, p))
+                    yield worlds.Job(scene, batch, depth, pcfg, p, object_key=i)
+
+    results = worlds.run_jobs(spec, jobs(), progress=tick, record=True)
+    for (i, p), part in zip(order, results):
+        flagged = part.pop("flagged")
+        out = outs[i]
+        out.setdefault("physics_rerun_cpu", np.zeros(len(out["initial_penetration"]), bool))
+        if flagged.any():
+            scene, batch, depth, pcfg = plans[i][p]
+            part = _rerun_on_cpu(scene, pcfg, p, batch, depth, part, flagged)
+            out["physics_rerun_cpu"] |= flagged
+        for k, v in part.items():
+            out[result_key(p, k)] = v
+    return outs
 
 
 # hand, mesh, grasps and cfg unannotated: a wrong type is refused with FfcgsError here, not by a type checker

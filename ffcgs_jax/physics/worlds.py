@@ -46,7 +46,8 @@ from ffcgs_jax.physics.config import PhysicsConfig
 from ffcgs_jax.physics.scene import PhysicsScene
 
 MAX_WORLDS = 8192  # worlds stepped together: 8192 of the SVH's scene fit an H100 with room to spare
-MIN_WORLDS = 64  # the fewest worlds survivors move to: below it a step costs about the same
+MIN_WORLDS = 64  # the fewest worlds on a GPU: below it a step costs about the same
+MIN_WORLDS_CPU = 8  # Warp on the CPU (tests): a world costs its share there
 SYNC = 50  # steps between looks at the worlds' status (a refill waits at most this long)
 GRAVITY = -9.81  # m/s^2, `scene.build`'s
 # model fields that differ per world (`gather`): an object's parts, mass and inertia; the table's height
@@ -272,6 +273,7 @@ class Engine:
         # host view of the worlds: which job, grasp and direction each runs (-1: free)
         self.tag = np.full((self.nworld, 3), -1, np.int64)
         self.size = 0
+        self.timing: dict[int, tuple[float, int]] = {}  # world count -> (seconds, step calls) of stepping
         self.stats = Stats(setup_s=time.perf_counter() - t0)
 
     # -------------------------------------------------------------------------------------------------------
@@ -385,8 +387,8 @@ class Engine:
     # worlds
 
     def _world_count(self, n: int) -> int:
-        size = self.nworld
-        while size // 2 >= max(n, MIN_WORLDS):
+        size, least = self.nworld, MIN_WORLDS if self.device.is_cuda else MIN_WORLDS_CPU
+        while size // 2 >= max(n, least):
             size //= 2
         return size
 
@@ -504,18 +506,24 @@ def engine(spec: HandSpec, cfg: PhysicsConfig, kind: str, slots: int, nworld: in
     return _ENGINES[key]
 
 
+def warm() -> bool:
+    """Whether an engine is built in this process (a run then pays no start-up)."""
+    return bool(_ENGINES)
+
+
 def clear() -> None:
     """Drop the engines (their device buffers and graphs)."""
     _ENGINES.clear()
 
 
 def run_jobs(spec: HandSpec, jobs: Iterable[Job], nworld: int = MAX_WORLDS, device: str | None = None,
-             slots: int | None = None, progress: Callable[[int], None] | None = None, stats: dict | None = None
-             ) -> list[dict[str, np.ndarray]]:
+             slots: int | None = None, progress: Callable[[int], None] | None = None, stats: dict | None = None,
+             record: bool = False) -> list[dict[str, np.ndarray]]:
     """Run every job (one protocol over one object's grasps) as worlds; returns `run_protocol`'s arrays per job,
     in order. `jobs` may be a generator that prepares objects as it goes (`runner.evaluate_many`): it runs on a
     thread, so the next objects' geometry is built while the GPU simulates. `progress(k)`: k more grasps have all
-    their worlds done. `stats` (a dict): filled with each engine's `Stats` by kind."""
+    their worlds done (grasps that start in penetration count at once). `stats` (a dict): filled with each
+    engine's `Stats` by kind. `record`: remember this run's seconds per step and start-up for `auto` (`cost`)."""
     feed: queue.Queue = queue.Queue(maxsize=64)
     END = object()
 
@@ -544,22 +552,39 @@ def run_jobs(spec: HandSpec, jobs: Iterable[Job], nworld: int = MAX_WORLDS, devi
                 break
             if isinstance(item, BaseException):
                 raise item
-            _add(spec, item, states, engines, pending, nworld, device, slots)
+            _add(spec, item, states, engines, pending, nworld, device, slots, progress)
         if fed and all(not pending.get(k) and not (e.tag[: e.size, 0] >= 0).any() for k, e in engines.items()):
             break
         for kind, e in engines.items():
             _round(e, pending[kind], states, progress, fed)
     if stats is not None:
         stats.update({k: e.stats for k, e in engines.items()})
+    if record:
+        _remember(engines)
     return [s.result() for s in states]
 
 
-def _add(spec, job: Job, states, engines, pending, nworld, device, slots) -> None:
+def _remember(engines: dict[str, "Engine"]) -> None:
+    from ffcgs_jax.physics import cost
+
+    for e in engines.values():
+        if not e.device.is_cuda:
+            continue  # Warp on the CPU is a test path, not a choice `auto` makes
+        for size, (seconds, steps) in e.timing.items():
+            if steps >= 4 * SYNC:
+                cost.remember_warp(size, seconds / steps)
+        if e.stats.setup_s > 0:
+            cost.remember_setup(e.stats.setup_s)
+
+
+def _add(spec, job: Job, states, engines, pending, nworld, device, slots, progress) -> None:
     kind = world_model.kind_of(job.scene)
     if kind not in engines:
         n = slots or job.cfg.max_hulls
         engines[kind] = engine(spec, job.cfg, kind, n, nworld, device)
-        engines[kind].stats = Stats(setup_s=engines[kind].stats.setup_s)
+        fresh = not engines[kind].stats.steps
+        engines[kind].stats = Stats(setup_s=engines[kind].stats.setup_s if fresh else 0.0)
+        engines[kind].timing = {}
         engines[kind].size = 0  # a new run starts on fresh worlds
         pending[kind] = []
     e = engines[kind]
@@ -570,6 +595,8 @@ def _add(spec, job: Job, states, engines, pending, nworld, device, slots) -> Non
     st = _JobState(job)
     states.append(st)
     rows = np.flatnonzero(~st.bad_start)
+    if progress is not None and len(rows) < st.b:
+        progress(st.b - len(rows))
     if len(rows):
         pending[kind].append(e.fresh(len(states) - 1, job, obj, rows))
         st.open += len(rows)
@@ -606,6 +633,11 @@ def _round(e: Engine, pending: list[_Block], states: list[_JobState], progress, 
     ip, fp = e.status()
     t2 = time.perf_counter()
     e.stats.steps += SYNC
+    sec, n = e.timing.get(e.size, (0.0, 0))
+    if e.stats.steps > SYNC:  # the first round compiles or loads the kernels and captures the graph: start-up
+        e.timing[e.size] = (sec + t2 - t1, n + SYNC)
+    else:
+        e.stats.setup_s += t2 - t1
     e.stats.world_steps += SYNC * e.size
     e.stats.busy_steps += SYNC * running
     ended = np.flatnonzero((e.tag[: e.size, 0] >= 0) & (ip[:, L.ST] != K.RUNNING))
