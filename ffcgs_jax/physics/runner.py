@@ -46,10 +46,12 @@ grasps, no Python per step) or MuJoCo Warp (`backend_warp`, grasps as worlds on 
 rules are in `protocols`, the backends' interface in `backend`.
 """
 
+import collections
 import dataclasses
 import os
 import time
-from collections.abc import Callable
+import warnings
+from collections.abc import Callable, Iterable
 
 import mujoco
 import numpy as np
@@ -311,28 +313,44 @@ class Item:
     parts: list | None = None
 
 
-def evaluate_many(spec: HandSpec, items: list[Item], cfg: PhysicsConfig = PhysicsConfig(), protocols=PROTOCOLS,
+def evaluate_many(spec: HandSpec, items: Iterable[Item], cfg: PhysicsConfig = PhysicsConfig(), protocols=PROTOCOLS,
                   backend: str | None = None, progress: Callable[[int], None] | None = None,
                   threads: int | None = None) -> list[dict[str, np.ndarray]]:
     """`evaluate` for many objects at once: one result dict per item, in order. On MuJoCo Warp the grasps of every
     object are worlds of the same launches (`worlds.run_jobs`), and each object's collision geometry, scenes and
     grasp plan are built on `threads` CPU threads (default: the cores, at most 8) while the GPU simulates the
-    objects before it. On the CPU the objects run one after another."""
+    objects before it. On the CPU the objects run one after another.
+
+    `items` may be a generator (a labelled build's, which synthesises each object's candidates as it is asked for
+    the next): it is then read on a thread while the GPU simulates, and "auto" takes Warp wherever it can run
+    (the batch's size is not known in advance)."""
     cfg.check()
     protocols = tuple(protocols)
     for p in protocols:
         if p not in ALL_PROTOCOLS:
             raise FfcgsError(f"unknown protocol {p!r}; protocols: {', '.join(ALL_PROTOCOLS)}")
-    for it in items:
-        if len(np.asarray(it.q).reshape(-1)) == 0:
-            raise FfcgsError("no grasps to test")
-        check_reach(spec, it.mesh, it.wrist_pose)
+    listed = isinstance(items, (list, tuple))
+    if listed:
+        for it in items:
+            _check_item(spec, it)
     asked = cfg.backend if backend is None else backend
-    backend, _ = resolve_backend(asked, sum(int(np.shape(it.q)[0]) for it in items), protocols, cfg)
+    n = sum(int(np.shape(it.q)[0]) for it in items) if listed else None
+    backend, _ = resolve_backend(asked, n, protocols, cfg)
     tick = progress or (lambda n: None)
     if backend == "warp":
         return _on_worlds(spec, items, cfg, protocols, tick, threads)
-    return [_on_simulator(spec, it, cfg, protocols, backend, tick) for it in items]
+    out = []
+    for it in items:
+        if not listed:
+            _check_item(spec, it)
+        out.append(_on_simulator(spec, it, cfg, protocols, backend, tick))
+    return out
+
+
+def _check_item(spec: HandSpec, it: Item) -> None:
+    if len(np.asarray(it.q).reshape(-1)) == 0:
+        raise FfcgsError("no grasps to test")
+    check_reach(spec, it.mesh, it.wrist_pose)
 
 
 def _prepared(spec: HandSpec, it: Item, cfg: PhysicsConfig, protocols) -> tuple[dict, dict]:
@@ -388,31 +406,77 @@ def _on_worlds(spec: HandSpec, items: list[Item], cfg: PhysicsConfig, protocols,
 
     from ffcgs_jax.physics import worlds
 
-    outs: list[dict] = [None] * len(items)  # type: ignore[list-item]
-    plans: list[dict] = [None] * len(items)  # type: ignore[list-item]
+    outs: list[dict] = []
+    plans: list[dict] = []
     order: list[tuple[int, str]] = []
     n = threads or min(8, os.cpu_count() or 1)
 
+    def prepare(it: Item):
+        _check_item(spec, it)
+        return _prepared(spec, it, cfg, protocols)
+
+    window: collections.deque = collections.deque()
+    source = iter(items)
+
     def jobs():
+        # a window of objects in preparation, taken in order: the GPU starts on the first while the rest are built
         with concurrent.futures.ThreadPoolExecutor(n, thread_name_prefix="ffcgs-geometry") as pool:
-            futures = [pool.submit(_prepared, spec, it, cfg, protocols) for it in items]
-            for i, f in enumerate(futures):
-                outs[i], plans[i] = f.result()
-                for p, (scene, batch, depth, pcfg) in plans[i].items():
+            while True:
+                while len(window) < 2 * n:
+                    it = next(source, None)
+                    if it is None:
+                        break
+                    window.append(pool.submit(prepare, it))
+                if not window:
+                    return
+                i = len(outs)
+                out, plan = window.popleft().result()
+                outs.append(out)
+                plans.append(plan)
+                for p, (scene, batch, depth, pcfg) in plan.items():
                     order.append((i, p))
                     yield worlds.Job(scene, batch, depth, pcfg, p, object_key=i)
 
-    results = worlds.run_jobs(spec, jobs(), progress=tick, record=True)
+    try:
+        results = worlds.run_jobs(spec, jobs(), progress=tick, record=True)
+    except FfcgsError:
+        raise
+    except Exception as e:  # noqa: BLE001 - the GPU (out of memory, a driver error): the CPU still answers
+        worlds.clear()
+        first = str(e).splitlines()[0] if str(e) else ""
+        warnings.warn(f"physics: MuJoCo Warp failed ({type(e).__name__}: {first}); these grasps run on the CPU",
+                      stacklevel=3)
+        for f in list(window):  # objects prepared or in preparation, then the rest
+            out, plan = f.result()
+            outs.append(out)
+            plans.append(plan)
+        for out, plan in zip(outs, plans):
+            for p, (scene, batch, depth, pcfg) in plan.items():
+                part = run_protocol(CpuSim(scene, cfg.workers), batch, depth, pcfg, p)
+                part.pop("flagged")
+                out.update({result_key(p, k): v for k, v in part.items()})
+                tick(len(depth))
+        return outs + [_on_simulator(spec, it, cfg, protocols, "cpu", tick) for it in source]
+    rerun = 0
     for (i, p), part in zip(order, results):
-        flagged = part.pop("flagged")
         out = outs[i]
         out.setdefault("physics_rerun_cpu", np.zeros(len(out["initial_penetration"]), bool))
-        if flagged.any():
-            scene, batch, depth, pcfg = plans[i][p]
-            part = _rerun_on_cpu(scene, pcfg, p, batch, depth, part, flagged)
-            out["physics_rerun_cpu"] |= flagged
+        scene, batch, depth, pcfg = plans[i][p]
+        if part is None:  # the object could not become worlds (`worlds.run_jobs` said why)
+            part = run_protocol(CpuSim(scene, cfg.workers), batch, depth, pcfg, p)
+            flagged = np.ones(len(depth), bool)
+            part.pop("flagged")
+        else:
+            flagged = part.pop("flagged")
+            if flagged.any():
+                part = _rerun_on_cpu(scene, pcfg, p, batch, depth, part, flagged)
+                rerun += int(flagged.sum())
+        out["physics_rerun_cpu"] |= flagged
         for k, v in part.items():
             out[result_key(p, k)] = v
+    if rerun:
+        warnings.warn(f"physics: {rerun} grasp trials overflowed the GPU worlds' contact or constraint buffers and "
+                      f"ran again on the CPU (physics_rerun_cpu marks them)", stacklevel=3)
     return outs
 
 

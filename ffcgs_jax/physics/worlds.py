@@ -29,6 +29,7 @@ import dataclasses
 import queue
 import threading
 import time
+import warnings
 from collections.abc import Callable, Iterable
 
 import mujoco
@@ -164,8 +165,11 @@ class _JobState:
         self.unstable_dir = np.zeros((b, 6), bool)
         self.pushed = np.zeros((b, 6), bool)
         self.open = 0  # worlds of this job placed or queued and not finished
+        self.cpu: str | None = None  # why this job could not run as worlds (the caller runs it on the CPU)
 
-    def result(self) -> dict[str, np.ndarray]:
+    def result(self) -> dict[str, np.ndarray] | None:
+        if self.cpu is not None:
+            return None
         p, cfg = self.job.protocol, self.job.cfg
         bad, lost, unstable = self.bad_start, self.lost, self.unstable.copy()
         if p == "lift-shake":
@@ -520,7 +524,8 @@ def run_jobs(spec: HandSpec, jobs: Iterable[Job], nworld: int = MAX_WORLDS, devi
              slots: int | None = None, progress: Callable[[int], None] | None = None, stats: dict | None = None,
              record: bool = False) -> list[dict[str, np.ndarray]]:
     """Run every job (one protocol over one object's grasps) as worlds; returns `run_protocol`'s arrays per job,
-    in order. `jobs` may be a generator that prepares objects as it goes (`runner.evaluate_many`): it runs on a
+    in order, None for a job whose object could not become worlds (too many parts for the slots, a model MuJoCo
+    Warp refuses; a warning says why: the caller runs it on the CPU). `jobs` may be a generator that prepares objects as it goes (`runner.evaluate_many`): it runs on a
     thread, so the next objects' geometry is built while the GPU simulates. `progress(k)`: k more grasps have all
     their worlds done (grasps that start in penetration count at once). `stats` (a dict): filled with each
     engine's `Stats` by kind. `record`: remember this run's seconds per step and start-up for `auto` (`cost`)."""
@@ -561,6 +566,9 @@ def run_jobs(spec: HandSpec, jobs: Iterable[Job], nworld: int = MAX_WORLDS, devi
         stats.update({k: e.stats for k, e in engines.items()})
     if record:
         _remember(engines)
+    for s in states:
+        if s.cpu is not None:
+            warnings.warn(f"physics: {s.job.protocol} of an object runs on the CPU: {s.cpu}", stacklevel=2)
     return [s.result() for s in states]
 
 
@@ -591,9 +599,13 @@ def _add(spec, job: Job, states, engines, pending, nworld, device, slots, progre
     if job.cfg != e.cfg:
         raise FfcgsError("the jobs of one GPU run need one physics config per protocol kind")
     key = ("job", len(states)) if job.object_key is None else job.object_key
-    obj = e.add_object(key, job.scene)
     st = _JobState(job)
     states.append(st)
+    try:
+        obj = e.add_object(key, job.scene)
+    except FfcgsError as err:  # this object cannot become worlds: its grasps go to the CPU (`JobState.cpu`)
+        st.cpu = str(err)
+        return
     rows = np.flatnonzero(~st.bad_start)
     if progress is not None and len(rows) < st.b:
         progress(st.b - len(rows))
