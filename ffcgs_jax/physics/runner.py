@@ -315,7 +315,7 @@ class Item:
 
 def evaluate_many(spec: HandSpec, items: Iterable[Item], cfg: PhysicsConfig = PhysicsConfig(), protocols=PROTOCOLS,
                   backend: str | None = None, progress: Callable[[int], None] | None = None,
-                  threads: int | None = None) -> list[dict[str, np.ndarray]]:
+                  threads: int | None = None, stats: dict | None = None) -> list[dict[str, np.ndarray]]:
     """`evaluate` for many objects at once: one result dict per item, in order. On MuJoCo Warp the grasps of every
     object are worlds of the same launches (`worlds.run_jobs`), and each object's collision geometry, scenes and
     grasp plan are built on `threads` CPU threads (default: the cores, at most 8) while the GPU simulates the
@@ -323,7 +323,9 @@ def evaluate_many(spec: HandSpec, items: Iterable[Item], cfg: PhysicsConfig = Ph
 
     `items` may be a generator (a labelled build's, which synthesises each object's candidates as it is asked for
     the next): it is then read on a thread while the GPU simulates, and "auto" takes Warp wherever it can run
-    (the batch's size is not known in advance)."""
+    (the batch's size is not known in advance). `stats` (a dict): gets "backend", "geometry_s" (CPU seconds
+    building collision geometry, scenes and plans, summed over threads) and on Warp each engine's `worlds.Stats`
+    by kind ("ours", "dexgraspbench")."""
     cfg.check()
     protocols = tuple(protocols)
     for p in protocols:
@@ -337,13 +339,15 @@ def evaluate_many(spec: HandSpec, items: Iterable[Item], cfg: PhysicsConfig = Ph
     n = sum(int(np.shape(it.q)[0]) for it in items) if listed else None
     backend, _ = resolve_backend(asked, n, protocols, cfg)
     tick = progress or (lambda n: None)
+    stats = {} if stats is None else stats
+    stats.update(backend=backend, geometry_s=0.0)
     if backend == "warp":
-        return _on_worlds(spec, items, cfg, protocols, tick, threads)
+        return _on_worlds(spec, items, cfg, protocols, tick, threads, stats)
     out = []
     for it in items:
         if not listed:
             _check_item(spec, it)
-        out.append(_on_simulator(spec, it, cfg, protocols, backend, tick))
+        out.append(_on_simulator(spec, it, cfg, protocols, backend, tick, stats))
     return out
 
 
@@ -353,9 +357,11 @@ def _check_item(spec: HandSpec, it: Item) -> None:
     check_reach(spec, it.mesh, it.wrist_pose)
 
 
-def _prepared(spec: HandSpec, it: Item, cfg: PhysicsConfig, protocols) -> tuple[dict, dict]:
+def _prepared(spec: HandSpec, it: Item, cfg: PhysicsConfig, protocols, stats: dict | None = None
+              ) -> tuple[dict, dict]:
     """An object's scenes, its result arrays so far (penetration, palm contact) and per protocol (batch, depth,
     protocol config)."""
+    t0 = time.perf_counter()
     built = scenes(spec, it.mesh, cfg, protocols, it.table_z, it.parts)
     # the scenes differ only in gravity, table, the hold weld and contact softness and friction, none of which the
     # hand-object contacts, the fingertip Jacobians or the squeeze direction depend on: read the grasps once
@@ -368,13 +374,16 @@ def _prepared(spec: HandSpec, it: Item, cfg: PhysicsConfig, protocols) -> tuple[
         if dgb.is_bench(p):
             out[result_key(p, "pregrasp_penetration")] = depth
         plans[p] = (scene, batch, depth, pcfg)
+    if stats is not None:
+        stats["geometry_s"] = stats.get("geometry_s", 0.0) + time.perf_counter() - t0
     return out, plans
 
 
-def _on_simulator(spec: HandSpec, it: Item, cfg: PhysicsConfig, protocols, backend: str, tick) -> dict:
+def _on_simulator(spec: HandSpec, it: Item, cfg: PhysicsConfig, protocols, backend: str, tick,
+                  stats: dict | None = None) -> dict:
     from ffcgs_jax.physics import cost
 
-    out, plans = _prepared(spec, it, cfg, protocols)
+    out, plans = _prepared(spec, it, cfg, protocols, stats)
     for p, (scene, batch, depth, pcfg) in plans.items():
         t0 = time.perf_counter()
         if backend == "cpu":
@@ -398,7 +407,8 @@ def _on_simulator(spec: HandSpec, it: Item, cfg: PhysicsConfig, protocols, backe
     return out
 
 
-def _on_worlds(spec: HandSpec, items: list[Item], cfg: PhysicsConfig, protocols, tick, threads) -> list[dict]:
+def _on_worlds(spec: HandSpec, items: Iterable[Item], cfg: PhysicsConfig, protocols, tick, threads, stats: dict
+               ) -> list[dict]:
     """Every object, protocol and grasp of `items` as worlds of MuJoCo Warp launches; the CPU prepares the
     objects in order on a thread pool while the GPU runs the ones before; grasps whose worlds overflowed their
     buffers run again on the CPU (`physics_rerun_cpu`)."""
@@ -413,7 +423,7 @@ def _on_worlds(spec: HandSpec, items: list[Item], cfg: PhysicsConfig, protocols,
 
     def prepare(it: Item):
         _check_item(spec, it)
-        return _prepared(spec, it, cfg, protocols)
+        return _prepared(spec, it, cfg, protocols, stats)
 
     window: collections.deque = collections.deque()
     source = iter(items)
@@ -438,7 +448,7 @@ def _on_worlds(spec: HandSpec, items: list[Item], cfg: PhysicsConfig, protocols,
                     yield worlds.Job(scene, batch, depth, pcfg, p, object_key=i)
 
     try:
-        results = worlds.run_jobs(spec, jobs(), progress=tick, record=True)
+        results = worlds.run_jobs(spec, jobs(), progress=tick, record=True, stats=stats)
     except FfcgsError:
         raise
     except Exception as e:  # noqa: BLE001 - the GPU (out of memory, a driver error): the CPU still answers
@@ -456,7 +466,8 @@ def _on_worlds(spec: HandSpec, items: list[Item], cfg: PhysicsConfig, protocols,
                 part.pop("flagged")
                 out.update({result_key(p, k): v for k, v in part.items()})
                 tick(len(depth))
-        return outs + [_on_simulator(spec, it, cfg, protocols, "cpu", tick) for it in source]
+        stats["backend"] = "cpu"
+        return outs + [_on_simulator(spec, it, cfg, protocols, "cpu", tick, stats) for it in source]
     rerun = 0
     for (i, p), part in zip(order, results):
         out = outs[i]

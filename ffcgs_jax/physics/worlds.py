@@ -49,6 +49,7 @@ from ffcgs_jax.physics.scene import PhysicsScene
 MAX_WORLDS = 8192  # worlds stepped together: 8192 of the SVH's scene fit an H100 with room to spare
 MIN_WORLDS = 64  # the fewest worlds on a GPU: below it a step costs about the same
 MIN_WORLDS_CPU = 8  # Warp on the CPU (tests): a world costs its share there
+COMPACT = True  # survivors move to fewer worlds at the tail (off: the tests' uncompacted reference)
 SYNC = 50  # steps between looks at the worlds' status (a refill waits at most this long)
 GRAVITY = -9.81  # m/s^2, `scene.build`'s
 # model fields that differ per world (`gather`): an object's parts, mass and inertia; the table's height
@@ -624,7 +625,7 @@ def _round(e: Engine, pending: list[_Block], states: list[_JobState], progress, 
     want = e._world_count(queued + busy)
     if e.size == 0:
         e.resize(want)
-    elif fed and want < e.size and queued == 0:  # the tail: survivors move to fewer worlds
+    elif COMPACT and fed and want < e.size and queued == 0:  # the tail: survivors move to fewer worlds
         pending.insert(0, e.evacuate())
         e.resize(want)
     elif want > e.size:  # more work arrived than the worlds hold: grow (the running worlds move along)
