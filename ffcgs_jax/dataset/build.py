@@ -11,6 +11,10 @@ Per object (in its own frame, resting on the table as the file has it):
     5. for each of `rotations` random rotations R: the mesh is rotated, its SDF rebuilt (never the voxel grid
        rotated), the kept wrist poses pre-multiplied by R, a noisy copy drawn, and the record written.
 
+A labelled build ("keep all") whose physics runs on MuJoCo Warp takes the objects `group` at a time
+(`build_group`): their candidates are labelled by one physics run, each object still annotated and written as
+alone (same files, same resume).
+
 The annotation happens once per object, before the rotations. With the default yaw rotations (about the vertical
 axis through the object's origin) gravity and the table are unchanged relative to object and hand, so the physics
 results hold for every rotated copy exactly; "so3" rotations are a shape-only augmentation.
@@ -88,7 +92,7 @@ def record_config(cfg: DatasetConfig) -> dict:
     """The config stored in the dataset and checked on resume: everything but where the files are."""
     d = dataclasses.asdict(cfg)
     for k in ("objects", "out", "shard", "annotate", "engine", "address", "task_cpus", "ray_from", "allow_test", "cpus",
-              "gpus"):
+              "gpus", "group"):
         d.pop(k)
     for k in ("workers", "backend"):  # where the physics runs (the backends' outcomes agree: bench/RESULTS.md)
         d["physics"].pop(k)
@@ -204,10 +208,7 @@ def build_object(cfg: DatasetConfig, src: Source, parts_dir: Path, progress=None
     and write the parts of its rotations not yet finished. Returns its timing row, None when there was nothing
     to do. Writes are atomic and a finished part is never rewritten, so running an object twice (a retried task,
     two machines on one shared folder) gives the same files."""
-    import jax
-
-    # this object's parts only: listing the folder per object would read every part of a build of thousands
-    todo = {r for r in range(cfg.rotations) if not dataset_io.part_done(parts_dir, schema.record_id(src.name, r))}
+    todo = _todo(cfg, src, parts_dir)
     if not todo:
         return None
     t0 = time.perf_counter()
@@ -220,15 +221,72 @@ def build_object(cfg: DatasetConfig, src: Source, parts_dir: Path, progress=None
         return None
     else:
         ann = annotate(hand, spec, mesh, cfg, src.name, progress=progress)
-        cached.parent.mkdir(exist_ok=True)
-        ann.save(cached)
+        _keep(parts_dir, src, ann)
+    return _write(cfg, src, mesh, ann, todo, parts_dir, time.perf_counter() - t0)
+
+
+def build_group(cfg: DatasetConfig, srcs: list[Source], parts_dir: Path, progress=None) -> list[dict | None]:
+    """Several objects of a labelled build as one unit of work (`DatasetConfig.group`): as `build_object` for
+    each, but the objects to annotate are labelled together (`label.label_many`: on MuJoCo Warp their grasps
+    are worlds of the same launches, the next object synthesised while the GPU simulates). Returns a timing row
+    per object, in order, None where there was nothing to do; its seconds are the object's own plus an even
+    share of the group's physics. Objects of any other build, or a group of one, go through `build_object`."""
+    from ffcgs_jax.dataset import label
+
+    if cfg.keep != "all" or len(srcs) == 1:
+        return [build_object(cfg, src, parts_dir, progress) for src in srcs]
+    todo = [_todo(cfg, src, parts_dir) for src in srcs]
+    meshes, anns, spent, fresh = {}, {}, {}, []
+    for i, src in enumerate(srcs):
+        cached = annotation_path(parts_dir, src.name)
+        if not todo[i] or not (cfg.annotate or cached.is_file()):
+            continue
+        t0 = time.perf_counter()
+        meshes[i] = src.load()
+        if cached.is_file():
+            anns[i] = Annotation.load(cached)
+        else:
+            fresh.append(i)
+        spent[i] = time.perf_counter() - t0
+    if fresh:
+        hand, spec = _hand(cfg.hand)
+
+        def done(k: int, triple: tuple) -> None:  # kept as it comes: a later object's failure loses none
+            i = fresh[k]
+            anns[i] = Annotation(*triple)
+            _keep(parts_dir, srcs[i], anns[i])
+            spent[i] += sum(anns[i].seconds.values())
+
+        label.label_many(hand, spec, [(meshes[i], srcs[i].name) for i in fresh], cfg, done)
+    return [_write(cfg, src, meshes[i], anns[i], todo[i], parts_dir, spent[i]) if i in anns else None
+            for i, src in enumerate(srcs)]
+
+
+def _todo(cfg: DatasetConfig, src: Source, parts_dir: Path) -> set[int]:
+    """The rotation indices of `src` whose parts are not written yet."""
+    # this object's parts only: listing the folder per object would read every part of a build of thousands
+    return {r for r in range(cfg.rotations) if not dataset_io.part_done(parts_dir, schema.record_id(src.name, r))}
+
+
+def _keep(parts_dir: Path, src: Source, ann: Annotation) -> None:
+    cached = annotation_path(parts_dir, src.name)
+    cached.parent.mkdir(exist_ok=True)
+    ann.save(cached)
+
+
+def _write(cfg: DatasetConfig, src: Source, mesh: trimesh.Trimesh, ann: Annotation, todo: set[int],
+           parts_dir: Path, spent: float) -> dict:
+    """Write the records of `todo`; the object's timing row, `spent` the seconds it took before writing."""
+    import jax
+
     t1 = time.perf_counter()
     for rec in records(src, mesh, ann, cfg, todo):
         dataset_io.write_part(parts_dir, rec)
+    write = time.perf_counter() - t1
     return {"object": src.name, "backend": jax.default_backend(), "physics_backend": cfg.physics.backend,
             "cached": not ann.seconds, "records": len(todo), "grasps": len(todo) * len(ann.grasps["q"]),
             **ann.counts, **{f"{k}_s": round(v, 3) for k, v in ann.seconds.items()},
-            "write_s": round(time.perf_counter() - t1, 3), "total_s": round(time.perf_counter() - t0, 3)}
+            "write_s": round(write, 3), "total_s": round(spent + write, 3)}
 
 
 def build(cfg: DatasetConfig, show_progress: bool = True) -> dict:
@@ -257,8 +315,11 @@ def build(cfg: DatasetConfig, show_progress: bool = True) -> dict:
     writer = dataset_io.DatasetWriter(cfg.out, record_config(cfg), extra)
     # after the checks: a refused build says one line
     labelled = cfg.keep == "all"
-    backend, note = physics_runner.resolve_backend(cfg.physics.backend,
-                                                   cfg.per_object if labelled else cfg.physics_chunk)
+    if labelled:  # a group of objects is one physics run: `auto` weighs the group's grasps
+        backend, note = physics_runner.resolve_backend(cfg.physics.backend, cfg.per_object * cfg.group,
+                                                       cfg.protocol_list(), cfg.physics)
+    else:
+        backend, note = physics_runner.resolve_backend(cfg.physics.backend, cfg.physics_chunk)
     if note and show_progress:
         print(f"ffcgs: {note}", file=sys.stderr)
     if not labelled:  # a labelled build keeps "auto": each protocol then runs where it can (dexgraspbench: CPU)
@@ -268,6 +329,9 @@ def build(cfg: DatasetConfig, show_progress: bool = True) -> dict:
     k, n = cfg.shard_of()
     mine = srcs[k::n]
     todo = [s for s in mine if any(schema.record_id(s.name, r) not in writer.done for r in range(cfg.rotations))]
+    # groups share MuJoCo Warp's launches; on the CPU the objects' physics would only run one after another
+    size = cfg.group if labelled and backend == "warp" else 1
+    groups = [todo[i: i + size] for i in range(0, len(todo), size)]
     how, why = engine.choose(cfg, len(todo))
     if why and show_progress:
         print(f"ffcgs: {why}", file=sys.stderr)
@@ -293,7 +357,7 @@ def build(cfg: DatasetConfig, show_progress: bool = True) -> dict:
                            f"({c.get('tested_six_dir', 0)} physics-tested) in {row['total_s']:.0f} s")
 
     try:
-        engine.run(how, cfg, todo, writer.parts_dir, finished, bar, work=build_object)
+        engine.run(how, cfg, groups, writer.parts_dir, finished, bar, work=build_group)
     finally:
         bar.close()
     missing = len(set(expected) - set(dataset_io.done_records(writer.parts_dir)))

@@ -121,6 +121,9 @@ class DatasetConfig:
         cpus, gpus: how much of this machine a local Ray instance takes (0 cores / -1 GPUs: all of them), to share
             a workstation; a cluster joined with `address` has its own.
         ray_from: objects from which "auto" starts Ray (its start-up, a few seconds, dominates smaller builds).
+        group: objects per unit of work (a Ray task, one physics run) of a labelled build whose physics runs on
+            MuJoCo Warp: their grasps share the GPU's launches; 1 labels one object at a time. Other builds, and
+            labelled ones on CPU physics, take one object at a time. Not part of the dataset's config.
         planner, grasp, physics: the planner, the refinement (the grasp pipeline on given poses) and the test.
     """
 
@@ -154,6 +157,7 @@ class DatasetConfig:
     cpus: int = 0
     gpus: int = -1
     ray_from: int = 8
+    group: int = 16
     planner: PlannerConfig = PlannerConfig()
     # The planner draws its own geometric start poses; "geometric" here keeps the stored build config (and so
     # resuming a build) independent of the synthesis default, which is the cvae trained on this very data.
@@ -191,7 +195,7 @@ class DatasetConfig:
             raise FfcgsError("--address joins a Ray cluster: it needs --engine ray or auto, not plain")
         self.protocol_list()
         for name, lo, hi in (("complex", 0, 100_000), ("task_cpus", 1, 1024), ("ray_from", 0, 1_000_000),
-                             ("cpus", 0, 100_000), ("gpus", -1, 1024)):
+                             ("cpus", 0, 100_000), ("gpus", -1, 1024), ("group", 1, 4096)):
             check_integer(name.replace("_", "-"), getattr(self, name), lo, hi)
         for name in ("scale_min", "scale_max"):
             v = getattr(self, name)

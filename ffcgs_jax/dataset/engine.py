@@ -1,15 +1,17 @@
 """Where a build's objects run: one after another in this process ("plain"), or as Ray tasks ("ray").
 
-The unit of work is one object (`build.build_object`): it writes its own parts atomically into the build's
-parts folder and never rewrites a finished one, so a task that runs twice (Ray retries a task whose worker died)
-or on two machines gives the same files, and a build that stops keeps every finished object.
+The unit of work is a group of objects (`build.build_group`: one object, or `group` of a labelled build on MuJoCo
+Warp): it writes each object's parts atomically into the build's parts folder and never rewrites a finished one,
+so a task that runs twice (Ray retries a task whose worker died) or on two machines gives the same files, and a
+build that stops keeps every finished object.
 
 Ray: with no `address` a local Ray instance is started for the build (every GPU and core of this machine) and
 stopped after it; with `address` ("auto", "HOST:PORT", "ray://HOST:PORT") the build joins that cluster, and every
 node must see the parts folder (a shared file system). Each task holds `task_cpus` cores, which its CPU physics
 uses as threads, and an even share of the GPUs (the GPUs split over the tasks that fit on the cores), which its
 synthesis (and MuJoCo Warp) uses; so several objects are in flight per GPU, one synthesising while others
-simulate. Tasks are named after their object ("ffcgs:<object>"), which is how Ray's dashboard shows progress.
+simulate. Tasks are named after their group's first object ("ffcgs:<object>", "+N more" for the rest of a group),
+which is how Ray's dashboard shows progress.
 """
 
 from __future__ import annotations
@@ -62,17 +64,23 @@ def choose(cfg: DatasetConfig, n_objects: int) -> tuple[str, str | None]:
 
 def run(how: str, cfg: DatasetConfig, todo: list, parts_dir: Path, finished: Callable, bar=None,
         work: Callable | None = None) -> None:
-    """Build every object of `todo` with `work(cfg, src, parts_dir, progress)` (`build.build_object`), calling
-    `finished(src, row)` as each one ends. Plain stops at the first failure; Ray tries every object and raises
-    the first failure after the others ended, as one line naming its object. Either way the finished objects are
-    kept, and rerunning the build resumes."""
+    """Build every group of objects of `todo` (lists of `Source`) with `work(cfg, group, parts_dir, progress)`
+    (`build.build_group`, a timing row or None per object), calling `finished(src, row)` for each object as its
+    group ends. Plain stops at the first failure; Ray tries every group and raises the first failure after the
+    others ended, as one line naming its objects. Either way the finished objects are kept, and rerunning the
+    build resumes."""
     if how == "plain":
-        for src in todo:
+        for group in todo:
             if bar is not None:
-                bar.set_postfix_str(src.name)
-            finished(src, work(cfg, src, parts_dir, None))
+                bar.set_postfix_str(_name(group))
+            for src, row in zip(group, work(cfg, group, parts_dir, None), strict=True):
+                finished(src, row)
         return
     _run_ray(cfg, todo, parts_dir, finished, work)
+
+
+def _name(group: list) -> str:
+    return group[0].name + (f" +{len(group) - 1} more" if len(group) > 1 else "")
 
 
 def reachable(address: str) -> None:
@@ -139,14 +147,14 @@ def task_resources(cfg: DatasetConfig, resources: dict) -> tuple[int, float]:
     return cpus, round(share, 4)
 
 
-def _object_task(cfg: DatasetConfig, src, parts_dir: Path, work: Callable, cpus: int):
+def _group_task(cfg: DatasetConfig, group: list, parts_dir: Path, work: Callable, cpus: int):
     import dataclasses
 
     from ffcgs_jax.runtime import jax_cache
 
     jax_cache.enable()  # FFCGS_JAX_CACHE, from the driver
     cfg = dataclasses.replace(cfg, physics=dataclasses.replace(cfg.physics, workers=cpus))
-    return work(cfg, src, parts_dir, None)
+    return work(cfg, group, parts_dir, None)
 
 
 def _run_ray(cfg: DatasetConfig, todo: list, parts_dir: Path, finished: Callable, work: Callable) -> None:
@@ -155,26 +163,26 @@ def _run_ray(cfg: DatasetConfig, todo: list, parts_dir: Path, finished: Callable
     started = _connect(cfg)
     try:
         cpus, gpus = task_resources(cfg, ray.cluster_resources())
-        remote = ray.remote(_object_task)
+        remote = ray.remote(_group_task)
         pending = {}
-        for src in todo:
+        for group in todo:
             ref = remote.options(num_cpus=cpus, num_gpus=gpus, max_retries=RETRIES, retry_exceptions=False,
-                                 name=f"ffcgs:{src.name}").remote(cfg, src, parts_dir, work, cpus)
-            pending[ref] = src
+                                 name=f"ffcgs:{_name(group)}").remote(cfg, group, parts_dir, work, cpus)
+            pending[ref] = group
         errors = []
         while pending:
             ready, _ = ray.wait(list(pending), num_returns=1)
             for ref in ready:
-                src = pending.pop(ref)
+                group = pending.pop(ref)
                 try:
-                    row = ray.get(ref)
-                except Exception as e:  # noqa: BLE001 - every task failure becomes one line naming its object
-                    errors.append(f"{src.name}: {_message(e)}")
-                    finished(src, None)
-                    continue
-                finished(src, row)
+                    rows = ray.get(ref)
+                except Exception as e:  # noqa: BLE001 - every task failure becomes one line naming its objects
+                    errors.append(f"{_name(group)}: {_message(e)}")
+                    rows = [None] * len(group)
+                for src, row in zip(group, rows, strict=True):
+                    finished(src, row)
         if errors:
-            more = f" (and {len(errors) - 1} other object(s))" if len(errors) > 1 else ""
+            more = f" (and {len(errors) - 1} other task(s))" if len(errors) > 1 else ""
             raise FfcgsError(f"{errors[0]}{more}; finished objects are kept: rerun the same command to resume")
     finally:
         if started:

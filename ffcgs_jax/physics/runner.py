@@ -432,7 +432,9 @@ def _on_worlds(spec: HandSpec, items: Iterable[Item], cfg: PhysicsConfig, protoc
         # a window of objects in preparation, taken in order: the GPU starts on the first while the rest are built
         with concurrent.futures.ThreadPoolExecutor(n, thread_name_prefix="ffcgs-geometry") as pool:
             while True:
-                while len(window) < 2 * n:
+                # not past a ready head: a generator that synthesises each item as it is read (`label.label_many`)
+                # would otherwise hold the GPU back for a whole window of objects
+                while len(window) < 2 * n and not (window and window[0].done()):
                     it = next(source, None)
                     if it is None:
                         break

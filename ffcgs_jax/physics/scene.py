@@ -47,9 +47,15 @@ def add_mesh_geom(s: mujoco.MjSpec, body, name: str, vertices: np.ndarray, faces
     return m, g
 
 
-def add_table(s: mujoco.MjSpec, table_z: float, conaffinity: int):
-    """Add the table: the plane z = table_z, contype 1 (the hand and, with conaffinity 3, the object touch it)."""
-    g = s.worldbody.add_geom()
+def add_table(s: mujoco.MjSpec, table_z: float, conaffinity: int, mocap: bool = False):
+    """Add the table: the plane z = table_z, contype 1 (the hand and, with conaffinity 3, the object touch it).
+    `mocap`: on a mocap body "table_mount" instead of the world body, so its height can differ per world and run
+    (MuJoCo Warp computes the poses of world-body geoms once, when it makes its Data)."""
+    parent = s.worldbody
+    if mocap:
+        parent = s.worldbody.add_body()
+        parent.name, parent.mocap = "table_mount", True
+    g = parent.add_geom()
     g.name, g.type, g.size, g.pos = "table", mujoco.mjtGeom.mjGEOM_PLANE, [0, 0, 0.01], [0, 0, table_z]
     g.rgba, g.contype, g.conaffinity = TABLE_RGBA, 1, conaffinity
     return g
@@ -96,10 +102,11 @@ class PhysicsScene:
 
 def build(spec: HandSpec, mesh: trimesh.Trimesh, parts: list[tuple[np.ndarray, np.ndarray]],
           cfg: PhysicsConfig = PhysicsConfig(), *, gravity: bool = True, table_z: float | None = None,
-          hold: bool = False, dexgraspbench: bool = False) -> PhysicsScene:
+          hold: bool = False, dexgraspbench: bool = False, table_mocap: bool = False) -> PhysicsScene:
     """Compile the scene. `parts`: convex pieces from `convex.decompose(mesh)`; table_z None = no table;
     hold: add a weld of the object to the world (`hold_eq`) that the protocol switches on and off;
-    dexgraspbench: DexGraspBench's contacts and solver (with `dexgraspbench.config(cfg, ...)`, no gravity)."""
+    dexgraspbench: DexGraspBench's contacts and solver (with `dexgraspbench.config(cfg, ...)`, no gravity);
+    table_mocap: the table on a mocap body (`add_table`), for the GPU worlds' model (`world_model`)."""
     s = mujoco.MjSpec.from_file(spec.mjcf_path)
     s.option.timestep = cfg.timestep
     s.option.cone = mujoco.mjtCone.mjCONE_ELLIPTIC if cfg.cone == "elliptic" else mujoco.mjtCone.mjCONE_PYRAMIDAL
@@ -155,7 +162,7 @@ def build(spec: HandSpec, mesh: trimesh.Trimesh, parts: list[tuple[np.ndarray, n
         eq.type, eq.objtype, eq.name, eq.name1 = mujoco.mjtEq.mjEQ_WELD, mujoco.mjtObj.mjOBJ_BODY, "hold", "object"
         eq.solref = [WELD_TIMECONST, 1.0]  # as stiff as the wrist: at MuJoCo's 0.02 s closing fingers shove it 1-2 cm
     if table_z is not None:
-        _contact(add_table(s, table_z, conaffinity=3), cfg)
+        _contact(add_table(s, table_z, conaffinity=3, mocap=table_mocap), cfg)
     try:
         model = s.compile()
     except ValueError as e:

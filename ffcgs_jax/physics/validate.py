@@ -44,6 +44,8 @@ def validate(hand, mesh: trimesh.Trimesh, grasps, protocols=PROTOCOLS, cfg: Phys
             the ones before it (six-dir first: it rejects the most). The grasp a user gets first is then found in
             a fraction of the time; the candidates after the last chunk stay untested (`physics_tested` False),
             and a protocol not run on a grasp that already failed another has no result (NaN / False / -1).
+            On MuJoCo Warp every candidate and protocol runs at once instead (one launch: its time is the longest
+            program's, not the number of grasps), so every candidate gets every result.
         progress: called with the number of trials done, as they finish.
 
     Returns:
@@ -89,7 +91,7 @@ def check(spec: HandSpec, mesh: trimesh.Trimesh, arrays: dict[str, np.ndarray], 
         runner.check_reach(spec, mesh, np.asarray(arrays["wrist_pose"])[idx], idx)
     stale = {physics_protocols.result_key(p, s) for p in protocols for s in RESULTS}  # an earlier check's
     arrays = {k: v for k, v in arrays.items() if k not in stale}
-    backend, _ = runner.resolve_backend(cfg.backend, max(len(idx), 1) if not need else min(len(idx), chunk_size()))
+    backend, _ = runner.resolve_backend(cfg.backend, max(len(idx), 1), protocols, cfg)
     t0 = time.perf_counter()
     squeeze = arrays.get("squeeze_dir")
 
@@ -97,7 +99,7 @@ def check(spec: HandSpec, mesh: trimesh.Trimesh, arrays: dict[str, np.ndarray], 
         return runner.evaluate(spec, mesh, arrays["wrist_pose"][at], arrays["q"][at], cfg, which, backend,
                                progress=progress, squeeze_dir=None if squeeze is None else squeeze[at])
 
-    if len(idx) and not need:
+    if len(idx) and (not need or backend == "warp"):
         arrays.update(spread(run(idx, protocols), idx, n))
     elif len(idx):
         tested = _until_enough(arrays, idx, n, protocols, need, run)

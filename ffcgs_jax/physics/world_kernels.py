@@ -102,6 +102,11 @@ def build(max_speed: float):
         mocap_pos[w, 0] = wp.vec3(fp[w, wpc], fp[w, wpc + 1], fp[w, wpc + 2]) + off
         q = col[9]
         mocap_quat[w, 0] = wp.quat(fp[w, q], fp[w, q + 1], fp[w, q + 2], fp[w, q + 3])
+        if mocap_pos.shape[1] > 1:  # the table's mount: at the object's table for lift-shake, else far below
+            z = -1000.0
+            if kind == 1:
+                z = fp[w, col[22]]
+            mocap_pos[w, 1] = wp.vec3(0.0, 0.0, z)
         if hold_eq >= 0:
             eq_active[w, hold_eq] = wp.where(kind == 2, True, False)
         f = wp.vec3(0.0, 0.0, 0.0)
@@ -239,7 +244,7 @@ def build(max_speed: float):
 
     @wp.kernel
     def gather(idx: wp.array(dtype=int), ip: wp.array2d(dtype=int), fp: wp.array2d(dtype=float),
-               col: wp.array(dtype=int), slots: wp.array(dtype=int), table_geom: int, obj_body: int, obj_dof: int,
+               col: wp.array(dtype=int), slots: wp.array(dtype=int), obj_body: int, obj_dof: int,
                nparts: wp.array(dtype=int), part_adr: wp.array(dtype=int), mesh_first: wp.array(dtype=int),
                part_dataid: wp.array(dtype=int), part_pos: wp.array(dtype=wp.vec3),
                part_quat: wp.array(dtype=wp.quat), part_size: wp.array(dtype=wp.vec3),
@@ -284,24 +289,16 @@ def build(max_speed: float):
             gravity[w] = wp.vec3(0.0, 0.0, g)
         else:
             gravity[w] = wp.vec3(0.0, 0.0, 0.0)
-        if table_geom >= 0:
-            z = -1000.0  # no table: far below anything a world holds
-            if kind == 1:
-                z = fp[w, col[22]]
-            geom_pos[w, table_geom] = wp.vec3(0.0, 0.0, z)
 
     @wp.kernel
-    def vacate(idx: wp.array(dtype=int), slots: wp.array(dtype=int), table_geom: int, ip: wp.array2d(dtype=int),
-               geom_dataid: wp.array2d(dtype=int), geom_pos: wp.array2d(dtype=wp.vec3),
-               gravity: wp.array(dtype=wp.vec3)):
+    def vacate(idx: wp.array(dtype=int), slots: wp.array(dtype=int), ip: wp.array2d(dtype=int),
+               geom_dataid: wp.array2d(dtype=int), gravity: wp.array(dtype=wp.vec3)):
         w = idx[wp.tid()]
         for i in range(ip.shape[1]):
             ip[w, i] = 0
         for s in range(slots.shape[0]):
             geom_dataid[w, slots[s]] = -1  # an empty world: no object, no contacts to solve
-        if table_geom >= 0:
-            geom_pos[w, table_geom] = wp.vec3(0.0, 0.0, -1000.0)
         gravity[w] = wp.vec3(0.0, 0.0, 0.0)
 
-    return dict(vacate=vacate, control=control, clear_flags=clear_flags, contact_flags=contact_flags, events=events, place=place,
-                gather=gather)
+    return dict(vacate=vacate, control=control, clear_flags=clear_flags, contact_flags=contact_flags, events=events,
+                place=place, gather=gather)

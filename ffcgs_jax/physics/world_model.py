@@ -9,8 +9,8 @@ world, so a world of object k is the template with object k's parts in its first
 the same scene as object k's own (`scene.build`), and a world never sees another object.
 
 - `template(spec, cfg, kind, slots)`: the scene `scene.build` makes, with an object of `slots` placeholder parts.
-  Kind "ours" holds the table and the hold weld (lift-shake and six-dir worlds share it: gravity, the table's
-  height and the weld are set per world); kind "dexgraspbench" is DexGraspBench's scene (no table, no weld,
+  Kind "ours" holds the table (on a mocap body: the second mocap, after the wrist's) and the hold weld (lift-shake
+  and six-dir worlds share it: gravity, the table's height and the weld are set per world); kind "dexgraspbench" is DexGraspBench's scene (no table, no weld,
   its own contacts and no-slip solver), so the two never share a launch.
 - `object_rows(scene)`: what object k's worlds need, read from its own compiled scene (`runner.scenes`): its
   meshes, its part geoms' frames and bounds, its body's mass and inertia and the weights MuJoCo derives from them.
@@ -46,7 +46,13 @@ PER_VERT = ("polymapadr", "polymapnum")
 
 
 def _placeholder() -> tuple[trimesh.Trimesh, tuple[np.ndarray, np.ndarray]]:
-    box = trimesh.creation.box((0.01, 0.01, 0.01))
+    """A box off the origin and turned: its body's centre of mass is off the body frame and its principal axes are
+    not the frame's, so MuJoCo compiles the object body as a general one (`body_simple` 0) whose free joint couples
+    all six dofs in the mass matrix. A centred, aligned placeholder compiles as a "simple" body, and MuJoCo Warp
+    would then drop the coupling terms every real object has (its sparsity pattern is fixed at `put_model`)."""
+    box = trimesh.creation.box((0.01, 0.02, 0.03))
+    box.apply_transform(trimesh.transformations.rotation_matrix(0.7, (1.0, 2.0, 3.0)))
+    box.apply_translation((0.005, -0.004, 0.003))
     return box, (np.asarray(box.vertices, np.float32), np.asarray(box.faces, np.int32))
 
 
@@ -57,8 +63,13 @@ def template(spec: HandSpec, cfg: PhysicsConfig, kind: str, slots: int) -> Physi
         raise FfcgsError(f"unknown world model kind {kind!r}; kinds: {', '.join(KINDS)}")
     box, part = _placeholder()
     if kind == "dexgraspbench":
-        return physics_scene.build(spec, box, [part] * slots, cfg, gravity=False, dexgraspbench=True)
-    return physics_scene.build(spec, box, [part] * slots, cfg, gravity=True, table_z=0.0, hold=True)
+        out = physics_scene.build(spec, box, [part] * slots, cfg, gravity=False, dexgraspbench=True)
+    else:
+        out = physics_scene.build(spec, box, [part] * slots, cfg, gravity=True, table_z=0.0, hold=True,
+                                  table_mocap=True)
+    if out.model.body_simple[out.obj_body] != 0:
+        raise FfcgsError("the world model's object compiled as a simple body: its mass matrix would drop terms")
+    return out
 
 
 @dataclasses.dataclass(frozen=True)
@@ -69,7 +80,7 @@ class ObjectRows:
 
     meshes: dict[str, np.ndarray]
     geom: dict[str, np.ndarray]
-    body: dict[str, np.ndarray]
+    body: dict[str, np.ndarray | float]  # mass and subtree mass are scalars
     dof_invweight0: np.ndarray
     table_z: float
     mass: float
@@ -182,8 +193,9 @@ class MeshPool:
 def check_same_hand(template_scene: PhysicsScene, scene: PhysicsScene) -> None:
     """Refuse an object scene whose hand, joints or options differ from the template's (one line)."""
     a, b = template_scene.model, scene.model
-    same = (a.nq == b.nq and a.nv == b.nv and a.nu == b.nu and a.nbody == b.nbody
-            and np.array_equal(template_scene.hand_geoms, scene.hand_geoms)
+    ha, hb = template_scene.hand_geoms, scene.hand_geoms  # ids shift with the table, a world geom numbered first
+    same = (a.nq == b.nq and a.nv == b.nv and a.nu == b.nu and len(ha) == len(hb)
+            and np.array_equal(a.geom_type[ha], b.geom_type[hb]) and np.allclose(a.geom_size[ha], b.geom_size[hb])
             and a.opt.timestep == b.opt.timestep and a.opt.noslip_iterations == b.opt.noslip_iterations)
     if not same:
         raise FfcgsError("an object's physics scene differs from its world model's (hand, joints or solver): "

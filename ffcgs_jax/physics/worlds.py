@@ -235,8 +235,8 @@ class Engine:
         self.wp, self.mjw, self.kind, self.cfg = wp, mjw, kind, cfg
         self.scene = world_model.template(spec, cfg, kind, slots)
         m = self.scene.model
-        if m.nmocap != 1:
-            raise FfcgsError(f"the warp backend drives one mocap wrist, the scene has {m.nmocap}")
+        if m.nmocap != (2 if self.scene.table_geom >= 0 else 1):  # the wrist's target and the table's mount
+            raise FfcgsError(f"the GPU worlds drive a mocap wrist and table, the hand's model has more mocap bodies")
         if m.na:
             raise FfcgsError("the GPU worlds hold no actuator activations: this hand's actuators have state")
         self.nworld, self.slots = int(nworld), int(slots)
@@ -419,8 +419,8 @@ class Engine:
         wp, m = self.wp, self.m
         with wp.ScopedDevice(self.device):
             wp.launch(self.k["vacate"], dim=len(idx), inputs=[wp.array(np.asarray(idx, np.int32), dtype=wp.int32),
-                                                              self.slot_geoms, int(self.scene.table_geom), self.ip,
-                                                              m.geom_dataid, m.geom_pos, m.opt.gravity])
+                                                              self.slot_geoms, self.ip, m.geom_dataid,
+                                                              m.opt.gravity])
         self.tag[idx] = -1
 
     def place(self, block: _Block) -> _Block:
@@ -442,8 +442,7 @@ class Engine:
                                                       d.qacc_warmstart, d.overflow])
             o, m = self._obj, self.m
             wp.launch(self.k["gather"], dim=n, inputs=[
-                widx, self.ip, self.fp, self.col, self.slot_geoms, int(self.scene.table_geom),
-                int(self.scene.obj_body), self.obj_dof, *o, m.geom_dataid, m.geom_pos, m.geom_quat, m.geom_size,
+                widx, self.ip, self.fp, self.col, self.slot_geoms, int(self.scene.obj_body), self.obj_dof, *o, m.geom_dataid, m.geom_pos, m.geom_quat, m.geom_size,
                 m.geom_aabb, m.geom_rbound, m.body_mass, m.body_ipos, m.body_iquat, m.body_inertia,
                 m.body_invweight0, m.body_subtreemass, m.dof_invweight0, m.opt.gravity, GRAVITY])
         self.tag[idx] = now.tag
@@ -523,7 +522,7 @@ def clear() -> None:
 
 def run_jobs(spec: HandSpec, jobs: Iterable[Job], nworld: int = MAX_WORLDS, device: str | None = None,
              slots: int | None = None, progress: Callable[[int], None] | None = None, stats: dict | None = None,
-             record: bool = False) -> list[dict[str, np.ndarray]]:
+             record: bool = False) -> list[dict[str, np.ndarray] | None]:
     """Run every job (one protocol over one object's grasps) as worlds; returns `run_protocol`'s arrays per job,
     in order, None for a job whose object could not become worlds (too many parts for the slots, a model MuJoCo
     Warp refuses; a warning says why: the caller runs it on the CPU). `jobs` may be a generator that prepares objects as it goes (`runner.evaluate_many`): it runs on a
@@ -595,6 +594,8 @@ def _add(spec, job: Job, states, engines, pending, nworld, device, slots, progre
         engines[kind].stats = Stats(setup_s=engines[kind].stats.setup_s if fresh else 0.0)
         engines[kind].timing = {}
         engines[kind].size = 0  # a new run starts on fresh worlds
+        e = engines[kind]  # and its own objects: keys name one run's objects (runner's are indices, 0, 1, ...)
+        e._objects, e._rows, e._first, e.pool, e._dirty = {}, [], [], world_model.MeshPool(e.scene.model), True
         pending[kind] = []
     e = engines[kind]
     if job.cfg != e.cfg:
