@@ -51,6 +51,8 @@ def build(max_speed: float):
             for i in range(qvel.shape[1]):
                 qvel[w, i] = 0.0
             xfrc[w, obj_body] = wp.spatial_vector(0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
+            if mocap_pos.shape[1] > 1:
+                mocap_pos[w, 1] = wp.vec3(0.0, 0.0, -1000.0)
             return
         t = ip[w, col[1]]
         n_close = sched[0]

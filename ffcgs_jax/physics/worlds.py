@@ -41,7 +41,7 @@ from ffcgs_jax.physics import protocols as P
 from ffcgs_jax.physics import world_kernels as K
 from ffcgs_jax.physics import world_model
 from ffcgs_jax.physics.backend import MAX_SPEED, Batch, route_mujoco_warnings
-from ffcgs_jax.physics.backend_warp import buffer_sizes, unavailable
+from ffcgs_jax.physics.backend_warp import unavailable
 from ffcgs_jax.physics.config import PhysicsConfig
 from ffcgs_jax.physics.scene import PhysicsScene
 from ffcgs_jax.physics.world_programs import JobState, Layout, Schedule
@@ -51,6 +51,12 @@ MIN_WORLDS = 64  # the fewest worlds on a GPU: below it a step costs about the s
 MIN_WORLDS_CPU = 8  # Warp on the CPU (tests): a world costs its share there
 COMPACT = True  # survivors move to fewer worlds at the tail (off: the tests' uncompacted reference)
 SYNC = 50  # steps between looks at the worlds' status (a refill waits at most this long)
+# Buffers: contacts are one pool over all worlds (a world may take more than its share), constraint rows are a
+# hard limit per world. Grasps of complex objects reach about 21 contacts and 81 rows at most (CPU MuJoCo, the SVH);
+# MuJoCo Warp's kernels launch over these sizes, so room to spare costs every step. A world that overflows is run
+# again on the CPU (`flagged`), so a rare tight case costs time, never a wrong label.
+CONTACTS_PER_WORLD = 48
+ROWS_PER_WORLD = 256
 GRAVITY = -9.81  # m/s^2, `scene.build`'s
 # model fields that differ per world (`gather`): an object's parts, mass and inertia; the table's height
 BATCHED = ("geom_dataid", "geom_pos", "geom_quat", "geom_size", "geom_aabb", "geom_rbound", "body_mass", "body_ipos",
@@ -73,6 +79,13 @@ class Job:
     cfg: PhysicsConfig
     protocol: str
     object_key: object = None
+
+
+def buffer_sizes(scene: PhysicsScene) -> tuple[int, int]:
+    """(contacts per world on average, constraint rows per world at most) of the worlds of `scene`: the equality
+    constraints' rows and the dofs on top of `ROWS_PER_WORLD` for contacts."""
+    m = scene.model
+    return CONTACTS_PER_WORLD, int(ROWS_PER_WORLD + 6 * m.neq + m.nv)
 
 
 @dataclasses.dataclass
