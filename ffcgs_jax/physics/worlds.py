@@ -364,23 +364,28 @@ class Engine:
                                              d.overflow, d.qpos, d.qvel, d.xpos, d.xquat, d.xmat, self.touch,
                                              self.table])
 
-    def advance(self, n: int) -> None:
-        """`n` step calls of the current worlds (a captured graph on CUDA)."""
+    def advance(self, n: int) -> bool:
+        """`n` step calls of the current worlds (a captured graph on CUDA); True when this call captured the graph
+        (the first at this world count: Warp's kernels load or compile then)."""
         wp = self.wp
         entry = self._data[self.size]
         d = entry[0]
         with wp.ScopedDevice(self.device):
             if not self.device.is_cuda:
+                first = not entry[1]
                 for _ in range(n):
                     self._one_step(d)
-                return
-            if entry[1] is None:
+                entry[1] = True  # no graph on the CPU: marks that this world count has stepped
+                return first
+            captured = entry[1] is None
+            if captured:
                 with wp.ScopedCapture(device=self.device) as capture:
                     self._one_step(d)
                 entry[1] = capture.graph
                 n -= 1
             for _ in range(n):
                 wp.capture_launch(entry[1])
+        return captured
 
     def status(self) -> tuple[np.ndarray, np.ndarray]:
         """The int and float rows of the current worlds (host copies)."""
@@ -406,7 +411,8 @@ def engine(spec: HandSpec, cfg: PhysicsConfig, kind: str, slots: int, nworld: in
     """The process's engine for (hand, config, kind, slots, worlds, device): built once, its graphs kept."""
     key = (spec.name, spec.mjcf_path, cfg, kind, slots, nworld, device)
     if key not in _ENGINES:
-        _ENGINES.clear()  # one at a time: each holds a model and buffers for `nworld` worlds on the device
+        for old in [k for k in _ENGINES if k[3] == kind]:  # one per kind: each holds buffers for `nworld` worlds
+            del _ENGINES[old]
         _ENGINES[key] = Engine(spec, cfg, kind, slots, nworld, device)
     return _ENGINES[key]
 
@@ -544,17 +550,18 @@ def _round(e: Engine, pending: list[_Block], states: list[JobState], progress, f
     if running == 0:
         e.stats.place_s += t1 - t0
         return
-    e.advance(SYNC)
+    captured = e.advance(SYNC)
     ip, fp = e.status()
     t2 = time.perf_counter()
-    e.stats.steps += SYNC
-    sec, n = e.timing.get(e.size, (0.0, 0))
-    if e.stats.steps > SYNC:  # the first round compiles or loads the kernels and captures the graph: start-up
-        e.timing[e.size] = (sec + t2 - t1, n + SYNC)
-    else:
+    if captured:  # kernels compiled or loaded and the graph captured: start-up, not a measure of stepping
         e.stats.setup_s += t2 - t1
-    e.stats.world_steps += SYNC * e.size
-    e.stats.busy_steps += SYNC * running
+    else:
+        sec, n = e.timing.get(e.size, (0.0, 0))
+        e.timing[e.size] = (sec + t2 - t1, n + SYNC)
+        e.stats.steps += SYNC
+        e.stats.world_steps += SYNC * e.size
+        e.stats.busy_steps += SYNC * running
+        e.stats.step_s += t2 - t1
     ended = np.flatnonzero((e.tag[: e.size, 0] >= 0) & (ip[:, L.ST] != K.RUNNING))
     done_grasps = 0
     if len(ended):
@@ -592,7 +599,6 @@ def _round(e: Engine, pending: list[_Block], states: list[JobState], progress, f
             accel = states[e.tag[spawn[0], 0]].job.cfg.accel
             pending.insert(0, e.pushes(ip[spawn], fp[spawn], snaps, e.tag[spawn].copy(), accel))
         e.vacate(ended)
-    e.stats.step_s += t2 - t1
     e.stats.place_s += t1 - t0
     e.stats.read_s += time.perf_counter() - t2
     if progress is not None and done_grasps:
