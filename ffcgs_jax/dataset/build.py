@@ -322,7 +322,7 @@ def build(cfg: DatasetConfig, show_progress: bool = True) -> dict:
         backend, note = physics_runner.resolve_backend(cfg.physics.backend, cfg.physics_chunk)
     if note and show_progress:
         print(f"ffcgs: {note}", file=sys.stderr)
-    if not labelled:  # a labelled build keeps "auto": each protocol then runs where it can (dexgraspbench: CPU)
+    if not labelled:  # a labelled build keeps "auto": its groups then run where they cost least
         cfg = dataclasses.replace(cfg, physics=dataclasses.replace(cfg.physics, backend=backend))
     expected = [schema.record_id(s.name, r) for s in srcs for r in range(cfg.rotations)]
     timing_log = writer.parts_dir / "timing.jsonl"

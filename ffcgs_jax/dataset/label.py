@@ -6,8 +6,8 @@
        or "planner": the planner's annealing as the start poses, the best `per_object` of `planner.population`
        refined);
     3. the physics test of every candidate, valid or not, under each of `DatasetConfig.protocols`
-       (`physics.runner.evaluate`: MuJoCo Warp for lift-shake and six-dir where it pays, CPU MuJoCo otherwise and
-       always for DexGraspBench's protocol);
+       (`physics.runner.evaluate`, or for a group of objects `evaluate_many`: MuJoCo Warp where it costs less,
+       every protocol as worlds of the same launches, CPU MuJoCo otherwise);
 and returns an `Annotation` whose grasps carry the labels (`schema.LABEL_ARRAYS`). Nothing is filtered: a
 learned predictor needs the failures, and the learned sampler's training set is the successes
 (`schema.Record.holds`).

@@ -8,8 +8,8 @@ cache (`runtime.jax_cache`; nothing is kept while that cache is off):
   of a process (model upload, buffers, graph capture; `remember_setup`). A batch needs the longest program's
   steps in sequence, and all its world-steps (`world_steps`) spread over the worlds: about
   max(sequential, world-steps / worlds) x seconds per step, plus the start-up when no engine is warm.
-Until a machine has its own figures, `PRIOR`: the H100 host of bench/RESULTS.md for the GPU, 0.4 core-s per
-protocol and grasp for the CPU. So `auto` may pick the CPU for a small batch on a many-core host and the GPU for
+Each engine kind ("ours": lift-shake and six-dir; DexGraspBench's) steps on its own, one after the other, so their
+times add. Until a machine has its own figures, `PRIOR`: the H100 host of bench/RESULTS.md. So `auto` may pick the CPU for a small batch on a many-core host and the GPU for
 the same batch on a 2-core one, and says which and why in one line.
 """
 
@@ -25,8 +25,10 @@ from ffcgs_jax.physics import protocols as P
 from ffcgs_jax.physics.config import PhysicsConfig
 
 RECORD_NAME = "ffcgs-physics-cost.json"
-PRIOR = {"cpu": {"lift-shake": 0.55, "six-dir": 0.25, "dexgraspbench": 0.4, "dexgraspbench-bodex": 0.4},
-         "step_s": {"64": 6e-4, "512": 1.1e-3, "4096": 2.9e-3, "8192": 5.5e-3}, "setup_s": 4.0}
+# measured on one H100 and its 16-core host (bench/RESULTS.md, "GPU physics at the limit"): CPU core-seconds per
+# grasp and protocol; seconds per step call of one engine at a world count; engines' start in a new process
+PRIOR = {"cpu": {"lift-shake": 0.70, "six-dir": 0.52, "dexgraspbench": 1.33, "dexgraspbench-bodex": 1.33},
+         "step_s": {"256": 1.4e-3, "1024": 2.5e-3, "4096": 6.5e-3, "8192": 1.26e-2}, "setup_s": 1.5}
 KEEP = 0.5  # weight of a new measurement against the record (an exponential average: machines drift, runs vary)
 _lock = threading.Lock()
 
@@ -128,14 +130,19 @@ def estimate(n: int, protocols, cfg: PhysicsConfig, cores: int, warm: bool, max_
     """(CPU seconds on `cores` cores, MuJoCo Warp seconds) for n grasps under `protocols`; `warm`: an engine is
     already running in this process (no start-up)."""
     f = _figures()
-    cpu = n * sum(float(f["cpu"].get(p, 0.4)) for p in protocols) / max(1, cores)
-    seq = max(program_steps(cfg, p)[0] for p in protocols)
-    work = n * sum(program_steps(cfg, p)[1] for p in protocols)
-    parallel = n * sum(7 if p != "lift-shake" else 1 for p in protocols)  # worlds the batch can fill at once
-    worlds = 64
-    while worlds < min(parallel, max_worlds):
-        worlds *= 2
-    gpu = max(seq, work / worlds) * _step_s(f["step_s"], worlds) + (0.0 if warm else float(f["setup_s"]))
+    cpu = n * sum(float(f["cpu"].get(p, 1.0)) for p in protocols) / max(1, cores)
+    gpu = 0.0 if warm else float(f["setup_s"])
+    for bench in (False, True):
+        mine = [p for p in protocols if dgb.is_bench(p) == bench]
+        if not mine:
+            continue
+        seq = max(program_steps(cfg, p)[0] for p in mine)
+        work = n * sum(program_steps(cfg, p)[1] for p in mine)
+        parallel = n * sum(7 if p != "lift-shake" else 1 for p in mine)  # worlds the batch can fill at once
+        worlds = 64
+        while worlds < min(parallel, max_worlds):
+            worlds *= 2
+        gpu += max(seq, work / worlds) * _step_s(f["step_s"], worlds)
     return cpu, gpu
 
 

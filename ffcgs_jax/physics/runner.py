@@ -41,7 +41,8 @@ wrong input (millimetres for metres, another frame), never a grasp to score, so 
 line naming how many there are and the first.
 
 The simulator (`PhysicsConfig.backend`, `resolve_backend`) is CPU MuJoCo through `mujoco.rollout` (threads across
-grasps, no Python per step) or MuJoCo Warp (`backend_warp`, grasps as worlds on a CUDA GPU); MJX
+grasps, no Python per step) or MuJoCo Warp (`worlds`: every grasp, protocol, push direction and object of a call
+as the worlds of the same launches on a CUDA GPU); MJX
 (`backend_mjx`) runs the same plan, slowly. The protocols and success
 rules are in `protocols`, the backends' interface in `backend`.
 """
@@ -338,6 +339,10 @@ def evaluate_many(spec: HandSpec, items: Iterable[Item], cfg: PhysicsConfig = Ph
     asked = cfg.backend if backend is None else backend
     n = sum(int(np.shape(it.q)[0]) for it in items) if listed else None
     backend, _ = resolve_backend(asked, n, protocols, cfg)
+    bench = [p for p in protocols if dgb.is_bench(p)]
+    if bench and backend == "mjx":
+        raise FfcgsError(f"protocol {bench[0]} runs on the CPU and Warp backends only (MuJoCo's no-slip solver, "
+                         f"which MJX lacks): use --backend cpu, warp or auto")
     tick = progress or (lambda n: None)
     stats = {} if stats is None else stats
     stats.update(backend=backend, geometry_s=0.0)

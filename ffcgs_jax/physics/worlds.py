@@ -26,6 +26,7 @@ a world whose state diverges fails "unstable", as on the CPU.
 """
 
 import dataclasses
+import os
 import queue
 import threading
 import time
@@ -163,6 +164,12 @@ class Engine:
         with wp.ScopedDevice(self.device):
             self.m = mjw.put_model(m, batch_sizes=dict.fromkeys(BATCHED, self.nworld))
             self.m.opt.gravity = wp.zeros(self.nworld, dtype=wp.vec3)
+            for item in filter(None, os.environ.get("FFCGS_WARP_SOLVER", "").split(",")):  # bench experiments
+                k, _, v = item.partition("=")
+                if k == "tolerance":
+                    self.m.opt.tolerance = wp.array([float(v)], dtype=wp.float32)
+                else:
+                    setattr(self.m.opt, k, int(v))
             arr = lambda x, dt=wp.int32: wp.array(np.ascontiguousarray(x), dtype=dt)  # noqa: E731
             self.col, self.gclass = arr(self.lay.col), arr(gclass)
             self.slot_geoms = arr(self.scene.obj_geoms.astype(np.int32))

@@ -41,8 +41,13 @@ def test_warp_gives_the_cpu_outcomes():
 def test_overflowed_worlds_are_rerun_on_the_cpu(monkeypatch):
     """Buffers of 2 contacts cannot hold a grasp: every world overflows, and the results are the CPU's."""
     Ts, qs = _four()
-    monkeypatch.setattr(backend_warp, "buffer_sizes", lambda scene: (2, 60))
-    warp = physics.evaluate(SPEC, BALL, Ts[:2], qs[:2], FAST, protocols=("six-dir",), backend="warp")
+    from ffcgs_jax.physics import worlds
+
+    worlds.clear()  # engines keep the buffers they were built with
+    monkeypatch.setattr(worlds, "buffer_sizes", lambda scene: (2, 60))
+    with pytest.warns(UserWarning, match="overflowed"):
+        warp = physics.evaluate(SPEC, BALL, Ts[:2], qs[:2], FAST, protocols=("six-dir",), backend="warp")
+    worlds.clear()
     cpu = physics.evaluate(SPEC, BALL, Ts[:2], qs[:2], FAST, protocols=("six-dir",), backend="cpu")
     assert warp["physics_rerun_cpu"].all()
     for k in ("six_dir_success", "six_dir_reason", "six_dir_move", "six_dir_move_dir"):

@@ -91,15 +91,23 @@ def test_early_exit_gives_the_full_runs_outcomes(setup, protocol):
         np.testing.assert_array_equal(fast["move"][ok], full["move"][ok])
 
 
-def test_auto_backend_needs_warp_a_cuda_device_and_enough_grasps(monkeypatch):
-    from ffcgs_jax.physics import backend_warp
+def test_auto_backend_needs_warp_a_cuda_device_and_the_lower_cost(monkeypatch, tmp_path):
+    """`auto` weighs the CPU's core-seconds against Warp's steps and start-up (`cost`, the default figures here: no
+    record): a 32-grasp check stays on 16 cores' CPU but goes to the GPU on 2 cores; a labelled build's thousands of
+    grasps go to Warp."""
+    from ffcgs_jax.physics import backend_warp, cost, worlds
 
     monkeypatch.setattr(backend_warp, "unavailable", lambda: None)
     monkeypatch.setattr(backend_warp, "no_cuda", lambda: None)
-    monkeypatch.setattr(physics.os, "cpu_count", lambda: 4)
-    assert physics.resolve_backend("auto", 24) == ("warp", None)
-    backend, note = physics.resolve_backend("auto", 23)
-    assert backend == "cpu" and "23 grasps are too few" in note
+    monkeypatch.setattr(cost, "record_path", lambda: tmp_path / "cost.json")
+    monkeypatch.setattr(worlds, "warm", lambda: False)
+    monkeypatch.setattr(physics.os, "cpu_count", lambda: 16)
+    backend, note = physics.resolve_backend("auto", 32)
+    assert backend == "cpu" and "32 grasps take about" in note and "on 16 cores" in note
+    assert physics.resolve_backend("auto", 4096) == ("warp", None)
+    monkeypatch.setattr(physics.os, "cpu_count", lambda: 2)
+    assert physics.resolve_backend("auto", 32) == ("warp", None)
+    monkeypatch.setattr(physics.os, "cpu_count", lambda: 16)
     assert physics.resolve_backend("cpu", 10_000) == ("cpu", None)  # asked for: never second-guessed
     monkeypatch.setattr(backend_warp, "no_cuda", lambda: "no CUDA")
     backend, note = physics.resolve_backend("auto", 10_000)
