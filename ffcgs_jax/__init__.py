@@ -21,7 +21,8 @@ from ffcgs_jax.version import __version__
 
 # JAX takes 75 % of a GPU's memory at its first use; the physics on MuJoCo Warp (`physics.worlds`) shares the GPU in
 # the same process, so JAX gets 60 % unless the user chose (read when JAX starts, so set before any JAX work)
-os.environ.setdefault("XLA_PYTHON_CLIENT_MEM_FRACTION", "0.6")
+if "XLA_PYTHON_CLIENT_MEM_FRACTION" not in os.environ:
+    os.environ["XLA_PYTHON_CLIENT_MEM_FRACTION"] = "0.6"
 
 # public name -> (module, attribute)
 _API = {

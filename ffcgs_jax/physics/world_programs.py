@@ -3,9 +3,12 @@
 - `Layout`: the columns of the per-world float and int arrays the kernels (`world_kernels`) read and write.
 - `Schedule`: each program's events (reference pose, checks, the branch to the pushes, the end), taken from the
   protocols' own segments (`protocols`), so the device checks where `protocols.run_protocol` checks on the CPU.
+- `Block`: tasks waiting for worlds; `Stats`: what a run cost.
 - `JobState`: one job's results as its worlds finish, and at the end the arrays of `run_protocol`, directions
   after the first failing one blanked as the CPU, which pushes them in turn and stops there, leaves them.
 """
+
+import dataclasses
 
 import numpy as np
 
@@ -126,3 +129,34 @@ class JobState:
         moved = (np.nan_to_num(move) >= cfg.max_move) | (np.nan_to_num(rot) >= cfg.max_rot_deg)
         return dict(success=~(bad | lost | moved | unstable), reason=P.failure_reason(bad, lost, moved, unstable),
                     move=move, rot=rot, move_dir=move_dir, rot_dir=rot_dir, flagged=self.flagged)
+
+
+@dataclasses.dataclass
+class Block:
+    """Tasks waiting for worlds: their int and float rows and initial states; `tag` (n, 3): job, grasp, direction."""
+
+    ip: np.ndarray
+    fp: np.ndarray
+    qpos: np.ndarray
+    qvel: np.ndarray
+    warm: np.ndarray
+    tag: np.ndarray
+
+    def split(self, n: int) -> tuple["Block", "Block"]:
+        f = dataclasses.fields(self)
+        return (Block(*(getattr(self, x.name)[:n] for x in f)), Block(*(getattr(self, x.name)[n:] for x in f)))
+
+
+@dataclasses.dataclass
+class Stats:
+    """What a run cost: step calls (`steps` of `worlds` worlds each), world-steps of programs that were running
+    (`busy_steps`), objects, and seconds spent placing, stepping (launch to status read) and reading results."""
+
+    steps: int = 0
+    world_steps: int = 0
+    busy_steps: int = 0
+    objects: int = 0
+    place_s: float = 0.0
+    step_s: float = 0.0
+    read_s: float = 0.0
+    setup_s: float = 0.0

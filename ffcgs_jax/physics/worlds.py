@@ -45,7 +45,7 @@ from ffcgs_jax.physics.backend import MAX_SPEED, Batch, route_mujoco_warnings
 from ffcgs_jax.physics.backend_warp import unavailable
 from ffcgs_jax.physics.config import PhysicsConfig
 from ffcgs_jax.physics.scene import PhysicsScene
-from ffcgs_jax.physics.world_programs import JobState, Layout, Schedule
+from ffcgs_jax.physics.world_programs import Block, JobState, Layout, Schedule, Stats
 
 MAX_WORLDS = 8192  # worlds stepped together: 8192 of the SVH's scene fit an H100 with room to spare
 MIN_WORLDS = 64  # the fewest worlds on a GPU: below it a step costs about the same
@@ -87,37 +87,6 @@ def buffer_sizes(scene: PhysicsScene) -> tuple[int, int]:
     constraints' rows and the dofs on top of `ROWS_PER_WORLD` for contacts."""
     m = scene.model
     return CONTACTS_PER_WORLD, int(ROWS_PER_WORLD + 6 * m.neq + m.nv)
-
-
-@dataclasses.dataclass
-class _Block:
-    """Tasks waiting for worlds: their int and float rows and initial states; `tag` (n, 3): job, grasp, direction."""
-
-    ip: np.ndarray
-    fp: np.ndarray
-    qpos: np.ndarray
-    qvel: np.ndarray
-    warm: np.ndarray
-    tag: np.ndarray
-
-    def split(self, n: int) -> tuple["_Block", "_Block"]:
-        f = dataclasses.fields(self)
-        return (_Block(*(getattr(self, x.name)[:n] for x in f)), _Block(*(getattr(self, x.name)[n:] for x in f)))
-
-
-@dataclasses.dataclass
-class Stats:
-    """What a run cost: step calls (`steps` of `worlds` worlds each), world-steps of programs that were running
-    (`busy_steps`), objects, and seconds spent placing, stepping (launch to status read) and reading results."""
-
-    steps: int = 0
-    world_steps: int = 0
-    busy_steps: int = 0
-    objects: int = 0
-    place_s: float = 0.0
-    step_s: float = 0.0
-    read_s: float = 0.0
-    setup_s: float = 0.0
 
 
 class Engine:
@@ -255,7 +224,7 @@ class Engine:
     # -------------------------------------------------------------------------------------------------------
     # tasks
 
-    def fresh(self, job_id: int, job: Job, obj: int, rows: np.ndarray) -> _Block:
+    def fresh(self, job_id: int, job: Job, obj: int, rows: np.ndarray) -> Block:
         """The first programs of grasps `rows` of `job` (lift-shake; six-dir's or DexGraspBench's closing)."""
         L, sc, b = self.lay, self.scene, job.batch
         kind = {"lift-shake": K.LIFT, "six-dir": K.SIX_CLOSE}.get(job.protocol, K.BENCH_SQUEEZE)
@@ -277,10 +246,10 @@ class Engine:
         qpos[:, sc.hand_qpos] = b.q_start[rows] @ sc.coupling.T
         zeros = np.zeros((n, m.nv))
         tag = np.stack([np.full(n, job_id), rows, np.full(n, -1)], axis=1)
-        return _Block(ip, fp, qpos, zeros, zeros.copy(), tag)
+        return Block(ip, fp, qpos, zeros, zeros.copy(), tag)
 
     def pushes(self, ip: np.ndarray, fp: np.ndarray, snaps: list[np.ndarray], tag: np.ndarray,
-               accel: float) -> _Block:
+               accel: float) -> Block:
         """Six push programs for each closed world (its rows `ip`, `fp`, its kept state `snaps`)."""
         L = self.lay
         kind = K.SIX_PUSH if self.kind == "ours" else K.BENCH_PUSH
@@ -294,7 +263,7 @@ class Engine:
         fp6[:, L.MOVE], fp6[:, L.ROT] = 0.0, 0.0
         tag6 = np.repeat(tag, 6, axis=0)
         tag6[:, 2] = np.tile(np.arange(6), n)
-        return _Block(ip6, fp6, *(np.repeat(s, 6, axis=0) for s in snaps), tag6)
+        return Block(ip6, fp6, *(np.repeat(s, 6, axis=0) for s in snaps), tag6)
 
     # -------------------------------------------------------------------------------------------------------
     # worlds
@@ -331,7 +300,7 @@ class Engine:
                                                               m.opt.gravity])
         self.tag[idx] = -1
 
-    def place(self, block: _Block) -> _Block:
+    def place(self, block: Block) -> Block:
         """Put as many tasks of `block` as there are free worlds; returns the rest."""
         free = np.flatnonzero(self.tag[: self.size, 0] < 0)
         n = min(len(free), len(block.ip))
@@ -401,12 +370,12 @@ class Engine:
     def snapshots(self, idx: np.ndarray) -> list[np.ndarray]:
         return [s.numpy()[idx] for s in self.snap]
 
-    def evacuate(self) -> _Block:
+    def evacuate(self) -> Block:
         """Every running world as tasks (state included), the worlds then free: survivors moving to fewer worlds."""
         ip, fp = self.status()
         busy = np.flatnonzero((self.tag[: self.size, 0] >= 0) & (ip[:, self.lay.ST] == K.RUNNING))
         d = self._data[self.size][0]
-        return _Block(ip[busy], fp[busy], d.qpos.numpy()[busy], d.qvel.numpy()[busy],
+        return Block(ip[busy], fp[busy], d.qpos.numpy()[busy], d.qvel.numpy()[busy],
                       d.qacc_warmstart.numpy()[busy], self.tag[busy].copy())
 
 
@@ -457,7 +426,7 @@ def run_jobs(spec: HandSpec, jobs: Iterable[Job], nworld: int = MAX_WORLDS, devi
     threading.Thread(target=produce, daemon=True, name="ffcgs-physics-feed").start()
     states: list[JobState] = []
     engines: dict[str, Engine] = {}
-    pending: dict[str, list[_Block]] = {}
+    pending: dict[str, list[Block]] = {}
     fed = False
     while True:
         while not fed:  # take what the feeder has ready; block only when nothing is left to simulate
@@ -530,7 +499,7 @@ def _add(spec, job: Job, states, engines, pending, nworld, device, slots, progre
         st.open += len(rows)
 
 
-def _round(e: Engine, pending: list[_Block], states: list[JobState], progress, fed: bool) -> None:
+def _round(e: Engine, pending: list[Block], states: list[JobState], progress, fed: bool) -> None:
     L = e.lay
     t0 = time.perf_counter()
     if getattr(e, "_dirty", False):
