@@ -380,17 +380,17 @@ def _physics_check(spec, mesh, arrays: dict, tested: np.ndarray, cfg: PhysicsCon
     from ffcgs_jax.physics import validate as physics_validate
 
     n = int(np.sum(tested))
-    cfg = dataclasses.replace(cfg, backend=physics_backend(cfg, min(n, physics_validate.chunk_size()) if need else n))
+    cfg = dataclasses.replace(cfg, backend=physics_backend(cfg, n, protocols))
     with tqdm(total=n * len(protocols), desc="physics", unit="grasp", disable=None, leave=False) as bar:
         return physics_validate.check(spec, mesh, arrays, tested, protocols, cfg, progress=bar.update, need=need)
 
 
-def physics_backend(cfg: PhysicsConfig, n: int) -> str:
-    """`cfg.backend` resolved for `n` grasps on this machine; when "auto" falls back to the CPU, one line on stderr
-    says why."""
+def physics_backend(cfg: PhysicsConfig, n: int, protocols) -> str:
+    """`cfg.backend` resolved for `n` grasps under `protocols` on this machine; when "auto" falls back to the CPU,
+    one line on stderr says why."""
     from ffcgs_jax.physics import runner as physics
 
-    backend, note = physics.resolve_backend(cfg.backend, n)
+    backend, note = physics.resolve_backend(cfg.backend, n, protocols, cfg)
     if note:
         print(f"ffcgs: {note}", file=sys.stderr)
     return backend
