@@ -390,8 +390,7 @@ class Bench:
                     r.update(upload=t["place_s"] + t["setup_s"], setup=t["setup_s"], simulation=t["step_s"],
                              copy_back=t["read_s"], objects_uploaded=t["objects"],
                              engines=len(engines_of(st)))
-                    # a run's first step round is in setup_s and step_s both (`worlds._round`): counted once here
-                    r["other"] = wall - st["geometry_s"] - t["place_s"] - t["step_s"] - t["read_s"]
+                    r["other"] = wall - st["geometry_s"] - r["upload"] - t["step_s"] - t["read_s"]
                 else:
                     r["simulation"] = wall - st["geometry_s"]
                     r["other"] = 0.0
@@ -521,14 +520,14 @@ def table3(rows: list[dict], b: Bench) -> str:
             cells += [f"{np.median(v):.3f}", f"{v.max():.3f}"] if len(v) else ["-", "-"]
         lines.append(f"| {label} | {' | '.join(cells)} |")
     lines += ["", "CPU simulation: the call less geometry. Upload, simulation and copy back are the engines' "
-              "`Stats` (place_s + setup_s, step_s, read_s) summed over the engines a call used; setup_s holds a "
-              "run's first step round (kernel loads, graph capture), which step_s counts too, so other = whole less "
-              "geometry, place_s, step_s and read_s."]
+              "`Stats` (place_s + setup_s, step_s, read_s) summed over the engines a call used; setup_s holds the "
+              "step rounds that captured a graph (kernel loads, graph capture), which step_s leaves out; other = "
+              "whole less the parts above."]
     gpu = [r for r in rows if r["backend"] == "warp"]
     if gpu:
         lines.append(f"Engines started per call: {sorted({r['engines'] for r in gpu})}; objects uploaded per call: "
                      f"{sorted({r['objects_uploaded'] for r in gpu})} (the protocols' engines each upload the "
-                     f"object; 0 means an engine took an earlier call's object for this one).")
+                     f"object; 0 would mean an engine took an earlier call's object for this one).")
     if b.no_gpu:
         lines.append(f"No GPU engine: {b.no_gpu}.")
     return "\n".join(lines) + "\n"

@@ -37,6 +37,7 @@ import os
 import re
 import secrets
 import shutil
+import threading
 import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
@@ -168,6 +169,33 @@ def atomic_write(path: str | Path, write: Callable[[IO[bytes]], object]) -> Path
 def write_text(path: str | Path, text: str) -> Path:
     """`text` (UTF-8) to `path`, atomically."""
     return atomic_write(path, lambda f: f.write(text.encode()))
+
+
+def read_record(path: Path | None) -> dict:
+    """The JSON object a machine-local record (`update_record`) holds at `path`; {} when there is none, it is
+    damaged or not an object (a record only steers estimates: a lost one starts again)."""
+    try:
+        data = json.loads(path.read_text()) if path is not None and path.is_file() else {}
+        return data if isinstance(data, dict) else {}
+    except (OSError, ValueError):
+        return {}
+
+
+_record_lock = threading.Lock()
+
+
+def update_record(path: Path | None, change: Callable[[dict], object]) -> None:
+    """Apply `change` to the record at `path` (`read_record`) and write it back atomically, so another process
+    reading it meanwhile sees all of it or the old one. Nothing when `path` is None or cannot be written (a
+    read-only cache folder costs only the estimates the record steers)."""
+    if path is None:
+        return
+    with _record_lock:
+        data = read_record(path)
+        change(data)
+        with contextlib.suppress(OSError):
+            path.parent.mkdir(parents=True, exist_ok=True)
+            write_text(path, json.dumps(data, indent=1))
 
 
 def resolved(path: str | Path) -> Path:

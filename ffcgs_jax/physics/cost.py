@@ -13,13 +13,9 @@ times add. Until a machine has its own figures, `PRIOR`: the H100 host of bench/
 the same batch on a 2-core one, and says which and why in one line.
 """
 
-import contextlib
-import json
-import os
-import tempfile
-import threading
 from pathlib import Path
 
+from ffcgs_jax import files
 from ffcgs_jax.physics import dexgraspbench as dgb
 from ffcgs_jax.physics import protocols as P
 from ffcgs_jax.physics.config import PhysicsConfig
@@ -30,7 +26,6 @@ RECORD_NAME = "ffcgs-physics-cost.json"
 PRIOR = {"cpu": {"lift-shake": 0.70, "six-dir": 0.52, "dexgraspbench": 1.33, "dexgraspbench-bodex": 1.33},
          "step_s": {"256": 1.4e-3, "1024": 2.5e-3, "4096": 6.5e-3, "8192": 1.26e-2}, "setup_s": 1.5}
 KEEP = 0.5  # weight of a new measurement against the record (an exponential average: machines drift, runs vary)
-_lock = threading.Lock()
 
 
 def record_path() -> Path | None:
@@ -41,32 +36,11 @@ def record_path() -> Path | None:
 
 
 def _read() -> dict:
-    path = record_path()
-    try:
-        data = json.loads(path.read_text()) if path is not None and path.is_file() else {}
-        return data if isinstance(data, dict) else {}
-    except (OSError, ValueError):  # a damaged record only costs a worse choice: start a new one
-        return {}
+    return files.read_record(record_path())
 
 
 def _update(change) -> None:
-    path = record_path()
-    if path is None:
-        return
-    with _lock:
-        data = _read()
-        change(data)
-        tmp = None
-        try:
-            path.parent.mkdir(parents=True, exist_ok=True)
-            fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=".ffcgs-physics-cost-", suffix=".tmp")
-            with os.fdopen(fd, "w") as f:
-                json.dump(data, f, indent=1)
-            os.replace(tmp, path)
-        except OSError:
-            if tmp is not None:
-                with contextlib.suppress(OSError):
-                    os.unlink(tmp)
+    files.update_record(record_path(), change)
 
 
 def _blend(old, new: float) -> float:

@@ -118,10 +118,6 @@ class Engine:
         bits = mjw.OverflowType
         self.bad_overflow = int(bits.NEFC | bits.NJMAX_NNZ | bits.BROADPHASE | bits.NARROWPHASE | bits.CCD
                                 | bits.NVMAX | bits.EPA_HORIZON)
-        self.pool = world_model.MeshPool(m)
-        self._objects: dict[object, int] = {}
-        self._rows: list[world_model.ObjectRows] = []
-        self._first: list[int] = []
         gclass = np.zeros(m.ngeom, np.int32)
         gclass[self.scene.hand_geoms] = K.HAND
         gclass[self.scene.obj_geoms] = K.OBJECT
@@ -150,13 +146,24 @@ class Engine:
             self.snap = [wp.zeros((self.nworld, n), dtype=wp.float32) for n in (m.nq, m.nv, m.nv)]
             self.touch, self.table = (wp.zeros(self.nworld, dtype=wp.int32) for _ in range(2))
         self._mesh_cap: dict[str, int] = {}
-        self._upload_pool()
         self._data: dict[int, tuple] = {}
         # host view of the worlds: which job, grasp and direction each runs (-1: free)
         self.tag = np.full((self.nworld, 3), -1, np.int64)
+        self.stats = Stats()
+        self.start_run()
+        self.stats.setup_s = time.perf_counter() - t0
+
+    def start_run(self) -> None:
+        """A new run (`run_jobs`): fresh worlds, no objects (keys name one run's objects: `runner` numbers them 0, 1,
+        ... in every call), and figures of its own (the engine's start counts in the run that built it)."""
+        self.pool = world_model.MeshPool(self.scene.model)
+        self._objects: dict[object, int] = {}
+        self._rows: list[world_model.ObjectRows] = []
+        self._first: list[int] = []
+        self._dirty = True  # the mesh pool and object rows go to the device before the next placement
         self.size = 0
         self.timing: dict[int, tuple[float, int]] = {}  # world count -> (seconds, step calls) of stepping
-        self.stats = Stats(setup_s=time.perf_counter() - t0)
+        self.stats = Stats(setup_s=0.0 if self.stats.steps else self.stats.setup_s)
 
     # -------------------------------------------------------------------------------------------------------
     # objects
@@ -189,7 +196,7 @@ class Engine:
                     getattr(old.dtype, "_wp_scalar_type_", old.dtype)))
                 a = a.reshape(len(host[f]), -1) if a.ndim > 1 else a
                 n = len(a)
-                if n > self._mesh_cap.get(f, old.shape[0] if old is not None else 0) or f not in self._mesh_cap:
+                if f not in self._mesh_cap or n > self._mesh_cap[f]:
                     cap = max(1, 2 * n)
                     new = wp.zeros(cap, dtype=old.dtype)
                     setattr(self.m, f"mesh_{f}", new)
@@ -473,12 +480,7 @@ def _add(spec, job: Job, states, engines, pending, nworld, device, slots, progre
     if kind not in engines:
         n = slots or job.cfg.max_hulls
         engines[kind] = engine(spec, job.cfg, kind, n, nworld, device)
-        fresh = not engines[kind].stats.steps
-        engines[kind].stats = Stats(setup_s=engines[kind].stats.setup_s if fresh else 0.0)
-        engines[kind].timing = {}
-        engines[kind].size = 0  # a new run starts on fresh worlds
-        e = engines[kind]  # and its own objects: keys name one run's objects (runner's are indices, 0, 1, ...)
-        e._objects, e._rows, e._first, e.pool, e._dirty = {}, [], [], world_model.MeshPool(e.scene.model), True
+        engines[kind].start_run()
         pending[kind] = []
     e = engines[kind]
     if job.cfg != e.cfg:
@@ -502,7 +504,7 @@ def _add(spec, job: Job, states, engines, pending, nworld, device, slots, progre
 def _round(e: Engine, pending: list[Block], states: list[JobState], progress, fed: bool) -> None:
     L = e.lay
     t0 = time.perf_counter()
-    if getattr(e, "_dirty", False):
+    if e._dirty:
         e._upload_pool()
     queued = sum(len(b.ip) for b in pending)
     busy = int((e.tag[: e.size, 0] >= 0).sum()) if e.size else 0

@@ -20,16 +20,16 @@ the CVAE's training step: 23 s on one H100 (bench/RESULTS.md, the sampler's trai
 """
 
 import contextlib
-import json
 import os
 import shutil
 import sys
-import tempfile
 import threading
 import time
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
+
+from ffcgs_jax import files
 
 DEFAULT_SECONDS = {"the SDF build": (1, 10), "the synthesis": (30, 90), "the evaluation": (10, 30),
                    "the success predictor": (2, 15), "the CVAE's training step": (20, 600),
@@ -40,7 +40,7 @@ KEEP = 5  # compile times kept per (work, machine): the estimate is their range
 _shown = False  # inside `shown()`: tickers show by default; outside (library use) only with show=True
 _stream: Any = None  # `shown()`'s stream; None: sys.stderr as it is when a ticker starts
 _headline: str | None = None  # `shown()`'s line to print before the first ticker's first output, once
-_lock = threading.Lock()  # one ticker line at a time, and one writer of the record
+_lock = threading.Lock()  # one ticker line at a time
 _active = 0  # tickers running: a second one at the same time (another thread) stays silent
 _described: set[str] = set()  # devices named once already: later tickers leave the device out
 _local = threading.local()
@@ -111,40 +111,22 @@ def record_path() -> Path | None:
     return Path(where) / RECORD_NAME
 
 
-def _read(path: Path | None) -> dict:
-    try:
-        data = json.loads(path.read_text()) if path is not None and path.is_file() else {}
-        return data if isinstance(data, dict) else {}
-    except (OSError, ValueError):  # a damaged record is only a worse estimate: start a new one
-        return {}
+def _times(data: dict, what: str, machine: str) -> list[float]:
+    return [float(s) for s in data.get(f"{what} | {machine}", []) if isinstance(s, (int, float))][-KEEP:]
 
 
 def recorded(what: str, machine: str, path: Path | None = None) -> list[float]:
     """The last compile times of `what` on `machine` (`device()`'s key), oldest first."""
-    seconds = _read(record_path() if path is None else path).get(f"{what} | {machine}", [])
-    return [float(s) for s in seconds if isinstance(s, (int, float))][-KEEP:]
+    return _times(files.read_record(record_path() if path is None else path), what, machine)
 
 
 def remember(what: str, machine: str, seconds: float, path: Path | None = None) -> None:
     """Add a full compile's seconds to the record (the last `KEEP` kept); nothing while the cache is off."""
-    path = record_path() if path is None else path
-    if path is None:
-        return
-    with _lock:
-        data = _read(path)
-        key = f"{what} | {machine}"
-        data[key] = (recorded(what, machine, path) + [round(float(seconds), 1)])[-KEEP:]
-        tmp = None
-        try:  # atomically: another process reading it meanwhile sees all of it or the old one
-            path.parent.mkdir(parents=True, exist_ok=True)
-            fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=".ffcgs-compile-times-", suffix=".tmp")
-            with os.fdopen(fd, "w") as f:
-                json.dump(data, f, indent=1)
-            os.replace(tmp, path)
-        except OSError:  # a read-only cache folder costs only the estimate
-            if tmp is not None:
-                with contextlib.suppress(OSError):
-                    os.unlink(tmp)
+
+    def add(data: dict) -> None:
+        data[f"{what} | {machine}"] = (_times(data, what, machine) + [round(float(seconds), 1)])[-KEEP:]
+
+    files.update_record(record_path() if path is None else path, add)
 
 
 def estimate(what: str, machine: str, path: Path | None = None) -> str:
