@@ -52,8 +52,8 @@ import numpy as np
 from tqdm import tqdm
 
 import quality as Q  # the sibling scoreboard: object groups, machine, rates, physics pass of a record
-from ffcgs_jax import files
-from ffcgs_jax.errors import FfcgsError
+from ffcgs_jax.core import files
+from ffcgs_jax.core.errors import FfcgsError
 from ffcgs_jax.physics.config import BACKENDS, PROTOCOLS, PhysicsConfig
 from ffcgs_jax.synthesis.config import SAMPLERS, GraspConfig
 

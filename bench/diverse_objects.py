@@ -59,8 +59,8 @@ from pathlib import Path
 
 import numpy as np
 
-from ffcgs_jax import files
-from ffcgs_jax.errors import FfcgsError
+from ffcgs_jax.core import files
+from ffcgs_jax.core.errors import FfcgsError
 from ffcgs_jax.hand import spec
 
 PROG = "bench/diverse_objects.py"

@@ -433,7 +433,7 @@ class Bench:
     def write(self) -> None:
         if not self.args.out:
             return
-        from ffcgs_jax import files
+        from ffcgs_jax.core import files
 
         if self.args.out.endswith(".json"):
             files.write_text(self.args.out, json.dumps(self.report, indent=1, default=float))
@@ -575,7 +575,7 @@ def log(text: str) -> None:
 
 def main(argv=None) -> int:
     args = parse_args(argv)
-    from ffcgs_jax.errors import FfcgsError
+    from ffcgs_jax.core.errors import FfcgsError
 
     t0 = time.perf_counter()
     try:

@@ -50,9 +50,9 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from ffcgs_jax import config as ffcgs_config
-from ffcgs_jax import files
-from ffcgs_jax.errors import FfcgsError
+from ffcgs_jax.core import config as ffcgs_config
+from ffcgs_jax.core import files
+from ffcgs_jax.core.errors import FfcgsError
 from ffcgs_jax.physics.config import ALL_PROTOCOLS, BACKENDS, PROTOCOLS, PhysicsConfig
 from ffcgs_jax.physics.protocols import wilson
 from ffcgs_jax.synthesis.config import SAMPLERS, GraspConfig

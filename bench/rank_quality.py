@@ -26,7 +26,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-from ffcgs_jax import files  # noqa: E402
+from ffcgs_jax.core import files  # noqa: E402
 from ffcgs_jax.evaluation import rank_metrics as M  # noqa: E402
 
 BOTH = ("lift_shake", "six_dir")

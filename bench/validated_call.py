@@ -29,8 +29,8 @@ import time
 
 import numpy as np
 
-from ffcgs_jax import files
-from ffcgs_jax.errors import FfcgsError
+from ffcgs_jax.core import files
+from ffcgs_jax.core.errors import FfcgsError
 from ffcgs_jax.physics.config import ALL_PROTOCOLS, BACKENDS, PROTOCOLS, PhysicsConfig
 
 from quality import COMPLEX_SEED  # noqa: E402 - the sibling script's complex family (seed 2000, unseen)

@@ -20,7 +20,8 @@ from ffcgs_jax.evaluation import device_metrics
 from ffcgs_jax.geometry import mesh_io
 from ffcgs_jax.geometry import sdf as S
 from ffcgs_jax.hand import kinematics as K
-from ffcgs_jax.synthesis import fetch, grasp
+from ffcgs_jax.runtime import fetch
+from ffcgs_jax.synthesis import grasp
 from ffcgs_jax.synthesis.config import GraspConfig, OptimConfig
 from ffcgs_jax.synthesis.energy import make_target
 

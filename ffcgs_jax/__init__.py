@@ -17,7 +17,7 @@ import importlib
 import os
 from typing import TYPE_CHECKING
 
-from ffcgs_jax.version import __version__
+from ffcgs_jax.core.version import __version__
 
 # JAX takes 75 % of a GPU's memory at its first use; the physics on MuJoCo Warp (`physics.worlds`) shares the GPU in
 # the same process, so JAX gets 60 % unless the user chose (read when JAX starts, so set before any JAX work)
@@ -51,11 +51,11 @@ _API = {
     "build_dataset": ("ffcgs_jax.dataset.build", "build"),
     "merge_dataset": ("ffcgs_jax.dataset.build", "merge"),
     "DatasetConfig": ("ffcgs_jax.dataset.config", "DatasetConfig"),
-    "train_sampler": ("ffcgs_jax.learning.train", "train"),
+    "train_sampler": ("ffcgs_jax.training.train", "train"),
     "TrainConfig": ("ffcgs_jax.learning.config", "TrainConfig"),
-    "train_evaluator": ("ffcgs_jax.learning.evaluator_train", "train"),
+    "train_evaluator": ("ffcgs_jax.training.evaluator_train", "train"),
     "EvaluatorTrainConfig": ("ffcgs_jax.learning.config", "EvaluatorTrainConfig"),
-    "FfcgsError": ("ffcgs_jax.errors", "FfcgsError"),
+    "FfcgsError": ("ffcgs_jax.core.errors", "FfcgsError"),
     "enable_compilation_cache": ("ffcgs_jax.runtime.jax_cache", "enable"),
     "clear_compiled": ("ffcgs_jax.synthesis.grasp", "clear_compiled"),
     "plot_grasps": ("ffcgs_jax.viz.grasp_plot", "grasps_image"),
@@ -69,7 +69,7 @@ if TYPE_CHECKING:  # what the lazy names are, for type checkers and editors
     from ffcgs_jax.dataset.build import build as build_dataset  # noqa: F401
     from ffcgs_jax.dataset.build import merge as merge_dataset  # noqa: F401
     from ffcgs_jax.dataset.config import DatasetConfig  # noqa: F401
-    from ffcgs_jax.errors import FfcgsError  # noqa: F401
+    from ffcgs_jax.core.errors import FfcgsError  # noqa: F401
     from ffcgs_jax.geometry.config import SDFConfig  # noqa: F401
     from ffcgs_jax.geometry.depth_io import load_frames  # noqa: F401
     from ffcgs_jax.geometry.depth_io import write_frames as save_frames  # noqa: F401
@@ -79,8 +79,8 @@ if TYPE_CHECKING:  # what the lazy names are, for type checkers and editors
     from ffcgs_jax.geometry.sdf import build_sdf  # noqa: F401
     from ffcgs_jax.hand.kinematics import load_hand  # noqa: F401
     from ffcgs_jax.learning.config import EvaluatorTrainConfig, TrainConfig  # noqa: F401
-    from ffcgs_jax.learning.evaluator_train import train as train_evaluator  # noqa: F401
-    from ffcgs_jax.learning.train import train as train_sampler  # noqa: F401
+    from ffcgs_jax.training.evaluator_train import train as train_evaluator  # noqa: F401
+    from ffcgs_jax.training.train import train as train_sampler  # noqa: F401
     from ffcgs_jax.physics.config import PROTOCOLS, PhysicsConfig  # noqa: F401
     from ffcgs_jax.physics.runner import evaluate_grasps as evaluate_physics  # noqa: F401
     from ffcgs_jax.physics.validate import validate  # noqa: F401

@@ -110,8 +110,8 @@ def test_tests_mirror_the_subpackages():
 
 def test_configs_live_beside_their_code():
     """Every config dataclass is defined in a subpackage (its `config.py` or the module it configures); the
-    shared ffcgs_jax/config.py holds only helpers."""
-    top = importlib.import_module("ffcgs_jax.config")
+    shared ffcgs_jax/core/config.py holds only helpers."""
+    top = importlib.import_module("ffcgs_jax.core.config")
     assert not [n for n, v in vars(top).items() if dataclasses.is_dataclass(v) and v.__module__ == top.__name__]
     for sub in ("geometry", "synthesis", "physics", "dataset", "learning", "viz"):
         mod = importlib.import_module(f"ffcgs_jax.{sub}.config")
@@ -407,6 +407,16 @@ def test_layer_violations_are_found():
     assert place("ffcgs_jax.low.x", contract) == (1, 0)
     with pytest.raises(AssertionError, match="in no layer"):
         place("ffcgs_jax.nowhere", contract)
+
+
+def test_layers_name_packages_only():
+    """Each name of the layers block is a whole subpackage (or `ffcgs_jax`, the public API), each subpackage is named
+    exactly once and no module sits at the package's root beside them: a folder is a layer, at one height."""
+    names = [n for layer in layers_contract() for group in layer for n in group]
+    subpackages = sorted(p.parent.name for p in PACKAGE.glob("*/__init__.py"))
+    assert sorted(n for n in names if n != "ffcgs_jax") == subpackages, (names, subpackages)
+    assert names.count("ffcgs_jax") == 1
+    assert sorted(p.name for p in PACKAGE.glob("*.py")) == ["__init__.py"]
 
 
 def test_layers_hold():

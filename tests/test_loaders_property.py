@@ -12,9 +12,9 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
 
-from ffcgs_jax import config as ffcgs_config
+from ffcgs_jax.core import config as ffcgs_config
 from ffcgs_jax.dataset import stats as dataset_stats
-from ffcgs_jax.errors import FfcgsError
+from ffcgs_jax.core.errors import FfcgsError
 from ffcgs_jax.geometry import depth_io, mesh_io
 from ffcgs_jax.hand import spec as hand_spec
 from ffcgs_jax.learning import weights

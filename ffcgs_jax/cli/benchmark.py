@@ -30,8 +30,8 @@ from pathlib import Path
 
 import numpy as np
 
-from ffcgs_jax import files
-from ffcgs_jax.errors import FfcgsError
+from ffcgs_jax.core import files
+from ffcgs_jax.core.errors import FfcgsError
 
 DEFAULT_BATCHES = {"gpu": (32, 1024, 8192, 65536), "cpu": (32, 256, 1024)}
 

@@ -15,7 +15,7 @@ from typing import Annotated
 import numpy as np
 import tyro
 
-from ffcgs_jax import files
+from ffcgs_jax.core import files
 from ffcgs_jax.cli.dataset_commands import (DatasetExportCmd, DatasetInfoCmd, DatasetMergeCmd, run_dataset_build,
                                              run_dataset_export, run_dataset_info, run_dataset_merge)
 from ffcgs_jax.cli.depth_commands import FuseCmd, RenderDepthCmd, run_fuse, run_render_depth
@@ -23,9 +23,9 @@ from ffcgs_jax.cli.grasp_object import not_the_recorded_object, recorded_object
 from ffcgs_jax.cli.hand_command import HandCmd, run_hand
 from ffcgs_jax.cli.show_command import ShowCmd, run_show
 from ffcgs_jax.dataset.config import DatasetConfig
-from ffcgs_jax.errors import FfcgsError
+from ffcgs_jax.core.errors import FfcgsError
 from ffcgs_jax.geometry.config import SDFConfig
-from ffcgs_jax.output_plan import Input, Output, Plan
+from ffcgs_jax.cli.output_plan import Input, Output, Plan
 from ffcgs_jax.physics.config import ALL_PROTOCOLS, PROTOCOLS, PhysicsConfig
 from ffcgs_jax.synthesis.config import GraspConfig
 
@@ -219,7 +219,7 @@ class GraspCmd:
     physics: PhysicsConfig = PhysicsConfig()
 
     def check(self) -> None:
-        from ffcgs_jax.config import check_integer
+        from ffcgs_jax.core.config import check_integer
 
         _protocols(self.protocol)
         check_integer("--need", self.need, 0, 1_000_000)

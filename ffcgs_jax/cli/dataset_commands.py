@@ -6,9 +6,9 @@ import json
 
 import tyro
 
-from ffcgs_jax import files
+from ffcgs_jax.core import files
 from ffcgs_jax.dataset.config import DatasetConfig
-from ffcgs_jax.errors import FfcgsError
+from ffcgs_jax.core.errors import FfcgsError
 
 
 @dataclasses.dataclass(frozen=True)

@@ -52,7 +52,7 @@ class RenderDepthCmd:
     overwrite: bool = False
 
     def check(self) -> None:
-        from ffcgs_jax.config import SEED_MAX, check_integer, check_range
+        from ffcgs_jax.core.config import SEED_MAX, check_integer, check_range
 
         check_integer("--views", self.views, 1, 360)
         check_integer("--width", self.width, 8, 4096)
@@ -63,7 +63,7 @@ class RenderDepthCmd:
 
 
 def run_render_depth(cmd: RenderDepthCmd) -> None:
-    from ffcgs_jax import files
+    from ffcgs_jax.core import files
     from ffcgs_jax.geometry import depth_io, depth_render, mesh_io
 
     mesh = mesh_io.load_mesh(cmd.object, scale=cmd.scale)
@@ -112,7 +112,7 @@ class FuseCmd:
     trunc: float = 4.0
 
     def check(self) -> None:
-        from ffcgs_jax.config import check_integer, check_range
+        from ffcgs_jax.core.config import check_integer, check_range
 
         check_integer("--res", self.res, 16, 128)
         check_range("--trunc", self.trunc, 1.0, 16.0)
@@ -155,7 +155,7 @@ def true_mesh_rows(gs) -> list[tuple[str, str]]:
 
 
 def run_fuse(cmd: FuseCmd) -> None:
-    from ffcgs_jax import files
+    from ffcgs_jax.core import files
     from ffcgs_jax.geometry import depth_object, sdf
 
     fo = depth_object.from_depth(cmd.frames, cmd.res, cmd.table_z, bounds_box(cmd.bounds), cmd.trunc)

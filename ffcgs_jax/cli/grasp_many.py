@@ -22,9 +22,9 @@ from pathlib import Path
 
 import numpy as np
 
-from ffcgs_jax import files
-from ffcgs_jax.version import __version__
-from ffcgs_jax.errors import FfcgsError
+from ffcgs_jax.core import files
+from ffcgs_jax.core.version import __version__
+from ffcgs_jax.core.errors import FfcgsError
 
 WRITTEN_BY = "ffcgs grasp"  # the folder's manifest: a folder of another command's files is not added to
 

@@ -1,6 +1,6 @@
 """Which object a grasp file's grasps were planned on: shared by `ffcgs eval` and `ffcgs show`."""
 
-from ffcgs_jax.errors import FfcgsError
+from ffcgs_jax.core.errors import FfcgsError
 
 
 def recorded_object(cmd, data: dict, builtins: list[str]) -> tuple[str, float]:

@@ -4,8 +4,8 @@ import dataclasses
 
 import numpy as np
 
-from ffcgs_jax import files
-from ffcgs_jax.errors import FfcgsError
+from ffcgs_jax.core import files
+from ffcgs_jax.core.errors import FfcgsError
 from ffcgs_jax.viz.config import RenderConfig
 
 

@@ -12,11 +12,11 @@ import textwrap
 import threading
 import warnings
 
-from ffcgs_jax import files
+from ffcgs_jax.core import files
 from ffcgs_jax.cli import smoke
 from ffcgs_jax.cli.commands import COMMANDS, PLANS
-from ffcgs_jax.config import with_overrides
-from ffcgs_jax.errors import FfcgsError
+from ffcgs_jax.core.config import with_overrides
+from ffcgs_jax.core.errors import FfcgsError
 
 # Composite configs whose nested sections share field names (seed, filters) keep their prefixes on the command
 # line: `ffcgs dataset build --per-object 200 --planner.population 4096 --physics.friction 0.6`.

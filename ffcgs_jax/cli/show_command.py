@@ -6,7 +6,7 @@ import time
 import numpy as np
 import tyro
 
-from ffcgs_jax.errors import FfcgsError
+from ffcgs_jax.core.errors import FfcgsError
 
 
 @dataclasses.dataclass(frozen=True)

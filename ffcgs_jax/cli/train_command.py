@@ -22,15 +22,15 @@ from pathlib import Path
 
 import numpy as np
 
-from ffcgs_jax import files
+from ffcgs_jax.core import files
 from ffcgs_jax.cli import smoke
-from ffcgs_jax.config import coerce, check_all, split_config_arg, with_overrides
-from ffcgs_jax.errors import FfcgsError
+from ffcgs_jax.core.config import coerce, check_all, split_config_arg, with_overrides
+from ffcgs_jax.core.errors import FfcgsError
 from ffcgs_jax.learning.config import EvaluatorTrainConfig, TrainConfig
 
 MODELS = {"sampler": TrainConfig, "evaluator": EvaluatorTrainConfig}
 
-# The training code imports JAX: `learning.data` and `learning.train` are imported where they run, so that
+# The training code imports JAX: `training.data` and `training.train` are imported where they run, so that
 # `ffcgs --help` (which names this command) stays quick.
 
 
@@ -131,8 +131,8 @@ def replace(cfg, dotted: str, value):
 def run_cv_evaluator(cfg: EvaluatorTrainConfig) -> dict:
     """Every fold of the predictor's cross-validation in OUT/fold<k>/, then OUT/cv.md; the mean summary."""
     from ffcgs_jax.hand import kinematics as K
-    from ffcgs_jax.learning import evaluator_data, evaluator_train
-    from ffcgs_jax.learning.train import dataset_hand
+    from ffcgs_jax.training import evaluator_data, evaluator_train
+    from ffcgs_jax.training.train import dataset_hand
 
     data = evaluator_data.load(cfg.data.path, K.load_hand(dataset_hand(cfg.data.path, cfg.hand)))
     rows = []
@@ -153,11 +153,11 @@ def run_cv_evaluator(cfg: EvaluatorTrainConfig) -> dict:
 
 def run_cv(cfg: TrainConfig | EvaluatorTrainConfig) -> dict:
     """Every fold of cfg.cv in OUT/fold<k>/, then OUT/cv.md; returns the mean summary."""
-    from ffcgs_jax.learning import data as cvae_data
+    from ffcgs_jax.training import data as cvae_data
 
     if isinstance(cfg, EvaluatorTrainConfig):
         return run_cv_evaluator(cfg)
-    from ffcgs_jax.learning.train import train
+    from ffcgs_jax.training.train import train
 
     rows = []
     data = cvae_data.load(cfg.data.path, cfg.data.noisy)  # once: the folds differ only in the objects held out
@@ -183,9 +183,9 @@ def run_one(cfg: TrainConfig | EvaluatorTrainConfig) -> dict:
     if cfg.cv.all:
         return run_cv(cfg)
     if isinstance(cfg, EvaluatorTrainConfig):
-        from ffcgs_jax.learning.evaluator_train import train
+        from ffcgs_jax.training.evaluator_train import train
     else:
-        from ffcgs_jax.learning.train import train
+        from ffcgs_jax.training.train import train
     t0 = time.perf_counter()
     return train(cfg) | {"time_s": time.perf_counter() - t0}
 
@@ -201,7 +201,7 @@ def run_sweep(cfg: TrainConfig | EvaluatorTrainConfig, grid: list[tuple[str, lis
         check_all(sub)
         rows.append({"name": name, "values": values} | run_one(sub))
     if isinstance(cfg, EvaluatorTrainConfig):
-        from ffcgs_jax.learning.evaluator_train import summary_columns
+        from ffcgs_jax.training.evaluator_train import summary_columns
 
         names, cells = summary_columns()
     else:

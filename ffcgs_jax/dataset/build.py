@@ -39,13 +39,13 @@ from pathlib import Path
 import numpy as np
 import trimesh
 
-from ffcgs_jax import files
-from ffcgs_jax.config import check_all
+from ffcgs_jax.core import files
+from ffcgs_jax.core.config import check_all
 from ffcgs_jax.dataset import engine, schema
 from ffcgs_jax.dataset import mcap_io as dataset_io
 from ffcgs_jax.dataset.config import DatasetConfig
 from ffcgs_jax.dataset.objects import Source, object_seed, objects_sha256, sources
-from ffcgs_jax.errors import FfcgsError
+from ffcgs_jax.core.errors import FfcgsError
 
 
 def rotation(cfg: DatasetConfig, name: str, index: int) -> np.ndarray:

@@ -2,8 +2,8 @@
 
 import dataclasses
 
-from ffcgs_jax.config import SEED_MAX, check_integer, is_finite
-from ffcgs_jax.errors import FfcgsError
+from ffcgs_jax.core.config import SEED_MAX, check_integer, is_finite
+from ffcgs_jax.core.errors import FfcgsError
 from ffcgs_jax.physics.config import ALL_PROTOCOLS, PhysicsConfig
 from ffcgs_jax.synthesis.config import SAMPLERS, GraspConfig
 

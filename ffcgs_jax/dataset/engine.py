@@ -23,7 +23,7 @@ from collections.abc import Callable
 from pathlib import Path
 
 from ffcgs_jax.dataset.config import DatasetConfig
-from ffcgs_jax.errors import FfcgsError
+from ffcgs_jax.core.errors import FfcgsError
 
 INSTALL = 'Ray is not installed: pip install -e ".[scale]" (or pip install ray)'
 RETRIES = 3  # a task whose worker or node died is run again this many times (its object only)

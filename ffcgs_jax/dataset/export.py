@@ -28,10 +28,10 @@ from pathlib import Path
 
 import numpy as np
 
-from ffcgs_jax import files
+from ffcgs_jax.core import files
 from ffcgs_jax.dataset import mcap_io
 from ffcgs_jax.dataset.schema import GRASP_ARRAYS, OPTIONAL_GRASP_ARRAYS, SDF_ARRAYS, Record, canonical_json
-from ffcgs_jax.errors import FfcgsError
+from ffcgs_jax.core.errors import FfcgsError
 
 FORMAT = "ffcgs.dataset.npz.v1"
 

@@ -34,8 +34,8 @@ from typing import NamedTuple
 
 import numpy as np
 
-from ffcgs_jax import files
-from ffcgs_jax.version import __version__
+from ffcgs_jax.core import files
+from ffcgs_jax.core.version import __version__
 from ffcgs_jax.dataset.schema import (
     MESSAGE_ENCODINGS,
     PHYSICS_ARRAYS,
@@ -47,8 +47,8 @@ from ffcgs_jax.dataset.schema import (
     encode_message,
     record_from,
 )
-from ffcgs_jax.errors import FfcgsError
-from ffcgs_jax.files import check_file
+from ffcgs_jax.core.errors import FfcgsError
+from ffcgs_jax.core.files import check_file
 
 _MCAP_MAGIC = b"\x89MCAP0\r\n"
 

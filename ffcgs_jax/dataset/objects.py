@@ -27,8 +27,8 @@ import numpy as np
 import trimesh
 
 from ffcgs_jax.dataset.config import DatasetConfig
-from ffcgs_jax.errors import FfcgsError
-from ffcgs_jax.files import duplicate_stems
+from ffcgs_jax.core.errors import FfcgsError
+from ffcgs_jax.core.files import duplicate_stems
 from ffcgs_jax.geometry import mesh_io, procedural
 
 MESH_SUFFIXES = tuple(f".{s}" for s in mesh_io.FORMATS)

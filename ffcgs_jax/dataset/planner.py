@@ -18,7 +18,7 @@ import jax.numpy as jnp
 import numpy as np
 import trimesh
 
-from ffcgs_jax.config import check_all
+from ffcgs_jax.core.config import check_all
 from ffcgs_jax.dataset.config import PlannerConfig
 from ffcgs_jax.geometry import sdf as sdf_mod
 from ffcgs_jax.hand import kinematics as K

@@ -65,7 +65,7 @@ import struct
 
 import numpy as np
 
-from ffcgs_jax.errors import FfcgsError
+from ffcgs_jax.core.errors import FfcgsError
 
 ARRAYS_ENCODING = "json"
 """Message encoding of the /sdf and /grasps messages written now (module docstring)."""

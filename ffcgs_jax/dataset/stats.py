@@ -17,7 +17,7 @@ import numpy as np
 
 from ffcgs_jax.dataset import mcap_io as dataset_io
 from ffcgs_jax.dataset.schema import SUCCESS_KEYS
-from ffcgs_jax.files import check_file
+from ffcgs_jax.core.files import check_file
 
 
 def _icosahedron_face_centres() -> np.ndarray:

@@ -35,7 +35,7 @@ import jax.numpy as jnp
 import numpy as np
 import trimesh
 
-from ffcgs_jax.errors import FfcgsError
+from ffcgs_jax.core.errors import FfcgsError
 from ffcgs_jax.evaluation.epsilon_search import EPS_STARTS, eps_tol, full_rank, search_epsilon
 from ffcgs_jax.evaluation.metrics import MetricsConfig
 from ffcgs_jax.geometry import mesh_io
@@ -44,7 +44,7 @@ from ffcgs_jax.kernels import lp_jax, quality
 from ffcgs_jax.kernels.directions import sphere_basis
 from ffcgs_jax.kernels.triangles import closest_offset, dist2, orientation, solid_angles, tri_table
 from ffcgs_jax.runtime import COMPILED_MAX, compile_clock, traced_store
-from ffcgs_jax.types import Array, Float
+from ffcgs_jax.core.types import Array, Float
 
 _POINT_CHUNK = 4096  # fingertip points per brute-force pass (bounds the (points, triangles) work in flight)
 FACE_CHUNK = 2048  # triangles per streamed chunk: every mesh, of 10 or 200,000 faces, runs through one executable

@@ -10,7 +10,7 @@ import jax
 import jax.numpy as jnp
 
 from ffcgs_jax.kernels import simplex
-from ffcgs_jax.types import Array, Float
+from ffcgs_jax.core.types import Array, Float
 
 EPS_STARTS = 256  # spread start directions of the epsilon search
 EPS_KEEP = 12  # of which the lowest start a facet walk

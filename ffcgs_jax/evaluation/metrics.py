@@ -27,7 +27,7 @@ import scipy.stats
 import trimesh
 from jaxtyping import Float
 
-from ffcgs_jax.errors import FfcgsError
+from ffcgs_jax.core.errors import FfcgsError
 from ffcgs_jax.kernels.directions import N_FIXED, sphere_basis
 
 EPS_TOL = 1e-12  # Qhull facet offsets carry ~1e-15 rounding: an ε at or below this counts as 0 (not force closure)

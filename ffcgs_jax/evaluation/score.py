@@ -18,7 +18,7 @@ from importlib import resources
 
 import numpy as np
 
-from ffcgs_jax.errors import FfcgsError
+from ffcgs_jax.core.errors import FfcgsError
 
 FEATURES = ("epsilon", "sqrt_epsilon", "E_c_mm", "penetration_mm", "E_q", "table_penetration_mm", "contact_max_mm")
 

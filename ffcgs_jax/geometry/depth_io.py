@@ -27,10 +27,10 @@ from typing import NamedTuple
 import numpy as np
 from PIL import Image
 
-from ffcgs_jax import files
-from ffcgs_jax.errors import FfcgsError
-from ffcgs_jax.files import read_text
-from ffcgs_jax.types import Bool, Float
+from ffcgs_jax.core import files
+from ffcgs_jax.core.errors import FfcgsError
+from ffcgs_jax.core.files import read_text
+from ffcgs_jax.core.types import Bool, Float
 
 CAMERA_KEYS = ("fx", "fy", "cx", "cy", "width", "height", "depth_scale")
 CAMERA_OPTIONAL = ("depth_min", "depth_max")

@@ -35,7 +35,7 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
 from ffcgs_jax.geometry import depth_io
-from ffcgs_jax.types import Float
+from ffcgs_jax.core.types import Float
 
 CELL = 0.01  # m: the connectivity cell: parts closer than this always join, parts 2 cells apart never do
 REACH = 0.5  # m: readings farther from the focus are never the object (larger than any graspable object)

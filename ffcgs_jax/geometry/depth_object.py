@@ -18,7 +18,7 @@ import jax
 import numpy as np
 import trimesh
 
-from ffcgs_jax.errors import FfcgsError
+from ffcgs_jax.core.errors import FfcgsError
 from ffcgs_jax.geometry import depth_io, depth_isolate, surface_nets, tsdf
 from ffcgs_jax.geometry.sdf import GradientSDF
 

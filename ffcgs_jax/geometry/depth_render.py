@@ -19,10 +19,10 @@ a = 0.0015 per metre, and a share of them drop out (set to 0) as on dark, shiny 
 import numpy as np
 import trimesh
 
-from ffcgs_jax.errors import FfcgsError
+from ffcgs_jax.core.errors import FfcgsError
 from ffcgs_jax.geometry.depth_io import Frames, pixel_rays, transform
 from ffcgs_jax.kernels.triangles import rasterise
-from ffcgs_jax.types import Bool, Float
+from ffcgs_jax.core.types import Bool, Float
 
 FOCAL_640 = 615.0  # px: a RealSense D435's colour-aligned focal length at 640x480
 NOISE_A = 0.0015  # 1/m: sigma = NOISE_A * z^2 (module docstring)

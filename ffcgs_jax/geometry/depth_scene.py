@@ -11,7 +11,7 @@ import dataclasses
 import numpy as np
 import trimesh
 
-from ffcgs_jax.errors import FfcgsError
+from ffcgs_jax.core.errors import FfcgsError
 from ffcgs_jax.geometry import depth_render
 from ffcgs_jax.geometry.depth_io import Frames
 

@@ -10,10 +10,10 @@ import warnings
 import numpy as np
 import trimesh
 
-from ffcgs_jax import files
-from ffcgs_jax.errors import FfcgsError
+from ffcgs_jax.core import files
+from ffcgs_jax.core.errors import FfcgsError
 from ffcgs_jax.geometry import objects
-from ffcgs_jax.files import check_file
+from ffcgs_jax.core.files import check_file
 
 FORMATS = ("obj", "stl", "ply", "off", "glb", "gltf")  # mesh formats trimesh reads that we accept
 MM_EXTENT = 2.0  # metres: a larger object is most likely in millimetres

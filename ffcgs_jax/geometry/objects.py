@@ -10,7 +10,7 @@ import pathlib
 import numpy as np
 import trimesh
 
-from ffcgs_jax.errors import FfcgsError
+from ffcgs_jax.core.errors import FfcgsError
 
 _SUFFIX = ".ply"
 

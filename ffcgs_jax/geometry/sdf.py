@@ -23,11 +23,11 @@ import numpy as np
 import trimesh
 from jax.custom_derivatives import SymbolicZero
 
-from ffcgs_jax import files
-from ffcgs_jax.errors import FfcgsError
+from ffcgs_jax.core import files
+from ffcgs_jax.core.errors import FfcgsError
 from ffcgs_jax.geometry import mesh_io, sdf_build, sdf_device
 from ffcgs_jax.geometry.config import SDFConfig
-from ffcgs_jax.types import Array, Float
+from ffcgs_jax.core.types import Array, Float
 
 _FORMAT_VERSION = 1
 

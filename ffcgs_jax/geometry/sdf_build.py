@@ -24,7 +24,7 @@ from scipy.spatial import cKDTree
 
 from ffcgs_jax.kernels.triangles import closest_offset, orientation, solid_angle_one, tri_table
 from ffcgs_jax.runtime.fixed_shapes import pad_rows
-from ffcgs_jax.types import Float, Int
+from ffcgs_jax.core.types import Float, Int
 
 _BLOCK = 4  # voxels per block edge in the candidate pruning of step 1
 _TRI_CHUNK = 1024  # triangles per kernel call (padded with far-away dummies, so kernels compile once)

@@ -49,7 +49,7 @@ from jax import lax
 from scipy.sparse import coo_matrix, csgraph
 
 from ffcgs_jax.kernels.triangles import closest_offset, dist2, orientation, search_table, solid_angles, tri_table
-from ffcgs_jax.types import Array, Float, Int
+from ffcgs_jax.core.types import Array, Float, Int
 
 _TILE = 4  # voxels per tile edge: a tile's 64 voxels share one candidate list
 _GROUP = 16  # consecutive triangles (Morton order) per group: the unit of pruning

@@ -11,8 +11,8 @@ inside the grid gives a closed mesh.
 import numpy as np
 import trimesh
 
-from ffcgs_jax.errors import FfcgsError
-from ffcgs_jax.types import Float
+from ffcgs_jax.core.errors import FfcgsError
+from ffcgs_jax.core.types import Float
 
 # (b, c) axes with b x c = a: the quad's cells, in this order around edge axis a, wind counter-clockwise seen from +a
 _PLANE = {0: (1, 2), 1: (2, 0), 2: (0, 1)}

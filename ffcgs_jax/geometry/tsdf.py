@@ -42,13 +42,13 @@ import numpy as np
 from scipy.ndimage import binary_dilation
 from scipy.spatial import cKDTree
 
-from ffcgs_jax.config import check_integer, check_range
-from ffcgs_jax.errors import FfcgsError
+from ffcgs_jax.core.config import check_integer, check_range
+from ffcgs_jax.core.errors import FfcgsError
 from ffcgs_jax.geometry import depth_io
 from ffcgs_jax.geometry.config import SDFConfig
 from ffcgs_jax.geometry.sdf import GradientSDF
 from ffcgs_jax.geometry.sdf import grid_frame as sdf_grid_frame
-from ffcgs_jax.types import Array, Bool, Float
+from ffcgs_jax.core.types import Array, Bool, Float
 
 _MIN_Z = 1e-6  # m: voxels this close to a camera's plane (or behind it) do not project
 # voxels: background readings also vote "empty" this far behind them, so that voxels on the table, which the

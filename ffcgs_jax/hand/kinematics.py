@@ -16,7 +16,7 @@ import mujoco
 import numpy as np
 from jaxtyping import Array, Float
 
-from ffcgs_jax.errors import FfcgsError
+from ffcgs_jax.core.errors import FfcgsError
 from ffcgs_jax.hand.mjx_import import mjx
 from ffcgs_jax.hand.spec import HandSpec, load_spec
 

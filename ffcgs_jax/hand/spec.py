@@ -32,9 +32,9 @@ from pathlib import Path
 import mujoco
 import numpy as np
 
-from ffcgs_jax.config import read_toml
-from ffcgs_jax.errors import FfcgsError
-from ffcgs_jax.files import read_text
+from ffcgs_jax.core.config import read_toml
+from ffcgs_jax.core.errors import FfcgsError
+from ffcgs_jax.core.files import read_text
 
 _TOP_KEYS = {"name", "mjcf", "root_body", "contact_sites", "palm_site", "palm_normal", "tetrahedron_sites",
              "channels", "coupling"}

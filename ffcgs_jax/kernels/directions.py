@@ -4,7 +4,7 @@ device evaluation and the in-graph LP (`kernels.quality.basis`). NumPy only."""
 import numpy as np
 from jaxtyping import Float
 
-from ffcgs_jax.errors import FfcgsError
+from ffcgs_jax.core.errors import FfcgsError
 
 N_FIXED = 12  # the ±e_i that open every `sphere_basis`
 REPULSION_STEPS = 200  # iterations of `sphere_basis`'s repulsion; part of its definition, do not change casually

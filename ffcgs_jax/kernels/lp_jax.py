@@ -42,9 +42,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ffcgs_jax.errors import FfcgsError
+from ffcgs_jax.core.errors import FfcgsError
 from ffcgs_jax.kernels import lp_pallas, simplex
-from ffcgs_jax.types import Array, Bool, Float, Int
+from ffcgs_jax.core.types import Array, Bool, Float, Int
 
 MAX_ITER = 100  # pivots; instances of this size took at most about 40 (tests/kernels/test_lp_jax.py)
 # Pivots per while-loop trip (the inverse is refreshed after each trip). With XLA pivots on a GPU each trip cost a

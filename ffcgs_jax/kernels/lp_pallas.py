@@ -27,7 +27,7 @@ import jax.numpy as jnp
 from jax import lax
 from jax.experimental import pallas as pl
 
-from ffcgs_jax.types import Array, Bool, Float, Int
+from ffcgs_jax.core.types import Array, Bool, Float, Int
 
 _ROWS, _COLS = 8, 128
 _UNIT = _COLS - 1  # the padding unit column, always basic in row 7

@@ -18,7 +18,7 @@ in its own code (its docstring says why) and tests/kernels/test_lp_jax.py holds 
 import jax
 import jax.numpy as jnp
 
-from ffcgs_jax.types import Array, Float, Int
+from ffcgs_jax.core.types import Array, Float, Int
 
 BLAND_AFTER = 8  # consecutive degenerate pivots after which Bland's rule enters
 

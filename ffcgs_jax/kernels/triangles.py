@@ -11,7 +11,7 @@ from typing import NamedTuple
 import jax.numpy as jnp
 import numpy as np
 
-from ffcgs_jax.types import Array
+from ffcgs_jax.core.types import Array
 
 
 def orientation(tri: np.ndarray) -> float:

@@ -9,8 +9,8 @@ import dataclasses
 import math
 from typing import Any
 
-from ffcgs_jax.config import check_integer, is_finite
-from ffcgs_jax.errors import FfcgsError
+from ffcgs_jax.core.config import check_integer, is_finite
+from ffcgs_jax.core.errors import FfcgsError
 
 
 def check_adam(optim) -> None:

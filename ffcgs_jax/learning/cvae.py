@@ -30,7 +30,7 @@ import numpy as np
 
 from ffcgs_jax.learning import layers as nn
 from ffcgs_jax.learning.config import ModelConfig
-from ffcgs_jax.types import Array, Float
+from ffcgs_jax.core.types import Array, Float
 
 POSE_DIM = 9
 

@@ -25,11 +25,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ffcgs_jax.errors import FfcgsError
+from ffcgs_jax.core.errors import FfcgsError
 from ffcgs_jax.geometry import sdf as sdf_mod
 from ffcgs_jax.hand import kinematics as K
 from ffcgs_jax.learning import layers as nn
-from ffcgs_jax.types import Array, Float
+from ffcgs_jax.core.types import Array, Float
 
 METRICS = {"epsilon": 0.01, "E": 0.1, "E_g": 0.01, "E_c": 0.001, "E_q": 0.1, "E_m": 0.01, "support_min": 0.01,
            "penetration": 0.001, "table_penetration": 0.001}

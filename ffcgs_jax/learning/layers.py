@@ -11,7 +11,7 @@ import jax
 import jax.numpy as jnp
 from jax import lax
 
-from ffcgs_jax.types import Array, Float
+from ffcgs_jax.core.types import Array, Float
 
 _DIMS = ("NDHWC", "DHWIO", "NDHWC")
 

@@ -1,5 +1,5 @@
 """Weights files of the package's networks: the CVAE's and the success predictor's, the ones shipped per hand, and
-loading any `weights.npz` that `ffcgs train` wrote (`learning.train`, `learning.evaluator_train`), checked."""
+loading any `weights.npz` that `ffcgs train` wrote (`training.train`, `training.evaluator_train`), checked."""
 
 from importlib import resources
 from pathlib import Path
@@ -8,8 +8,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ffcgs_jax.config import from_dict
-from ffcgs_jax.errors import FfcgsError
+from ffcgs_jax.core.config import from_dict
+from ffcgs_jax.core.errors import FfcgsError
 from ffcgs_jax.learning import checkpoint, cvae
 from ffcgs_jax.learning.config import ModelConfig
 

@@ -31,7 +31,7 @@ import jax.numpy as jnp
 import mujoco
 import numpy as np
 
-from ffcgs_jax.errors import FfcgsError
+from ffcgs_jax.core.errors import FfcgsError
 from ffcgs_jax.hand.mjx_import import mjx
 from ffcgs_jax.physics.backend import CHUNK, Batch, Segment, diverged, pose_hand, route_mujoco_warnings
 from ffcgs_jax.physics.scene import PhysicsScene

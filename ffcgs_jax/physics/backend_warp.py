@@ -23,7 +23,7 @@ import typing
 import mujoco
 import numpy as np
 
-from ffcgs_jax.errors import FfcgsError
+from ffcgs_jax.core.errors import FfcgsError
 from ffcgs_jax.physics.backend import CHUNK, Batch, Segment, diverged, pose_hand, route_mujoco_warnings
 from ffcgs_jax.physics.scene import PhysicsScene
 from ffcgs_jax.runtime.fixed_shapes import pad_rows

@@ -22,7 +22,7 @@ import warnings
 import numpy as np
 import trimesh
 
-from ffcgs_jax.errors import FfcgsError
+from ffcgs_jax.core.errors import FfcgsError
 from ffcgs_jax.physics import voxel_parts
 from ffcgs_jax.physics.config import PhysicsConfig
 from ffcgs_jax.physics.voxel_parts import Part

@@ -2,8 +2,8 @@
 
 import dataclasses
 
-from ffcgs_jax.config import check_integer, check_range
-from ffcgs_jax.errors import FfcgsError
+from ffcgs_jax.core.config import check_integer, check_range
+from ffcgs_jax.core.errors import FfcgsError
 
 PROTOCOLS = ("lift-shake", "six-dir")  # our physics tests: what `--protocol both` and `evaluate` run by default
 # DexGraspBench's MuJoCo test in its two published versions (`dexgraspbench.VERSIONS`: object mass and servo gain)

@@ -15,8 +15,8 @@ from pathlib import Path
 import numpy as np
 import trimesh
 
-from ffcgs_jax import files
-from ffcgs_jax.errors import FfcgsError
+from ffcgs_jax.core import files
+from ffcgs_jax.core.errors import FfcgsError
 from ffcgs_jax.geometry import mesh_io
 from ffcgs_jax.physics import collision
 from ffcgs_jax.physics.config import PhysicsConfig

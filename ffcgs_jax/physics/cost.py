@@ -15,7 +15,7 @@ the same batch on a 2-core one, and says which and why in one line.
 
 from pathlib import Path
 
-from ffcgs_jax import files
+from ffcgs_jax.core import files
 from ffcgs_jax.physics import dexgraspbench as dgb
 from ffcgs_jax.physics import protocols as P
 from ffcgs_jax.physics.config import PhysicsConfig

@@ -49,7 +49,7 @@ What we cannot take over, and what we chose:
 
 import dataclasses
 
-from ffcgs_jax.errors import FfcgsError
+from ffcgs_jax.core.errors import FfcgsError
 from ffcgs_jax.physics.config import DEXGRASPBENCH, PhysicsConfig
 
 

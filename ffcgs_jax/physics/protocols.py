@@ -11,7 +11,7 @@ from typing import Any
 import numpy as np
 import scipy.stats
 
-from ffcgs_jax.errors import FfcgsError
+from ffcgs_jax.core.errors import FfcgsError
 from ffcgs_jax.physics import dexgraspbench as dgb
 from ffcgs_jax.physics.backend import CHUNK, Batch, Segment, Simulator
 from ffcgs_jax.physics.config import ALL_PROTOCOLS, PhysicsConfig

@@ -58,7 +58,7 @@ import mujoco
 import numpy as np
 import trimesh
 
-from ffcgs_jax.errors import FfcgsError
+from ffcgs_jax.core.errors import FfcgsError
 from ffcgs_jax.hand.spec import HandSpec, load_spec
 from ffcgs_jax.physics import convex
 from ffcgs_jax.physics import dexgraspbench as dgb

@@ -17,7 +17,7 @@ from collections.abc import Callable
 import numpy as np
 import trimesh
 
-from ffcgs_jax.errors import FfcgsError, check_grasp_set
+from ffcgs_jax.core.errors import FfcgsError, check_grasp_set
 from ffcgs_jax.evaluation import ranking
 from ffcgs_jax.hand.spec import HandSpec
 from ffcgs_jax.physics import protocols as physics_protocols

@@ -23,7 +23,7 @@ import trimesh
 from scipy import ndimage
 from scipy.spatial import ConvexHull, QhullError
 
-from ffcgs_jax.errors import FfcgsError
+from ffcgs_jax.core.errors import FfcgsError
 
 Part = tuple[np.ndarray, np.ndarray]  # (V, 3) float64 vertices, (F, 3) int32 faces
 SAMPLES_PER_VOXEL_FACE = 6  # surface samples per voxel-face area, so every voxel the surface crosses gets one

@@ -27,7 +27,7 @@ import mujoco
 import numpy as np
 import trimesh
 
-from ffcgs_jax.errors import FfcgsError
+from ffcgs_jax.core.errors import FfcgsError
 from ffcgs_jax.hand.spec import HandSpec
 from ffcgs_jax.physics import dexgraspbench as dgb
 from ffcgs_jax.physics import scene as physics_scene

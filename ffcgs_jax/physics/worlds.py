@@ -36,7 +36,7 @@ from collections.abc import Callable, Iterable
 import mujoco
 import numpy as np
 
-from ffcgs_jax.errors import FfcgsError
+from ffcgs_jax.core.errors import FfcgsError
 from ffcgs_jax.hand.spec import HandSpec
 from ffcgs_jax.physics import protocols as P
 from ffcgs_jax.physics import world_kernels as K

@@ -29,7 +29,7 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
-from ffcgs_jax import files
+from ffcgs_jax.core import files
 
 DEFAULT_SECONDS = {"the SDF build": (1, 10), "the synthesis": (30, 90), "the evaluation": (10, 30),
                    "the success predictor": (2, 15), "the CVAE's training step": (20, 600),

@@ -28,7 +28,7 @@ from typing import Any
 
 import jax
 
-from ffcgs_jax import version as package_version
+from ffcgs_jax.core import version as package_version
 
 _ADDRESS = re.compile(r" at 0x[0-9a-fA-F]+")
 _REGISTERED: set[type] = set()
@@ -45,7 +45,7 @@ def folder() -> Path | None:
 @functools.cache
 def _source_hash() -> str:
     h = hashlib.sha256()
-    root = Path(package_version.__file__).parent
+    root = Path(package_version.__file__).parent.parent  # the whole package
     for p in sorted(root.rglob("*.py")):
         h.update(p.relative_to(root).as_posix().encode())
         h.update(p.read_bytes())

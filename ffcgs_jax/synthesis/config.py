@@ -6,8 +6,8 @@ import dataclasses
 import math
 import warnings
 
-from ffcgs_jax.config import SEED_MAX, check_integer, check_range, from_dict, read_toml
-from ffcgs_jax.errors import FfcgsError
+from ffcgs_jax.core.config import SEED_MAX, check_integer, check_range, from_dict, read_toml
+from ffcgs_jax.core.errors import FfcgsError
 from ffcgs_jax.geometry.config import SDFConfig
 
 LP_SOLVERS = ("jax", "proxsuite")

@@ -21,7 +21,7 @@ from ffcgs_jax.geometry.sdf import GradientSDF
 from ffcgs_jax.hand import kinematics as K
 from ffcgs_jax.hand.kinematics import Hand
 from ffcgs_jax.synthesis.config import FilterConfig
-from ffcgs_jax.types import Array, Bool, Float
+from ffcgs_jax.core.types import Array, Bool, Float
 
 # ----------------------------------------------------------------------------------------------------------------
 # Pose filters (before optimisation)

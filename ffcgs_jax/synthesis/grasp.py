@@ -23,16 +23,17 @@ import trimesh
 from jax.sharding import Mesh, NamedSharding
 from jax.sharding import PartitionSpec as P
 
-from ffcgs_jax.config import check_all
-from ffcgs_jax.config import from_dict as config_from_dict
-from ffcgs_jax.errors import FfcgsError, check_grasp_set
+from ffcgs_jax.core.config import check_all
+from ffcgs_jax.core.config import from_dict as config_from_dict
+from ffcgs_jax.core.errors import FfcgsError, check_grasp_set
 from ffcgs_jax.evaluation import device_metrics, metrics, ranking, score
 from ffcgs_jax.geometry import sdf as sdf_mod
 from ffcgs_jax.hand import kinematics as K
 from ffcgs_jax.hand.kinematics import Hand
 from ffcgs_jax.hand.sites import palm_centre_root
 from ffcgs_jax.runtime import COMPILED_MAX, compile_clock, progress, traced_store
-from ffcgs_jax.synthesis import fetch, grasp_io, memory, prediction, samplers, sharding
+from ffcgs_jax.runtime import fetch, memory, sharding
+from ffcgs_jax.synthesis import grasp_io, prediction, samplers
 from ffcgs_jax.synthesis import filters as F
 from ffcgs_jax.synthesis.config import EnergyConfig, GraspConfig, OptimConfig
 from ffcgs_jax.synthesis.energy import Target, Terms, chosen, fingertip_contacts, make_target

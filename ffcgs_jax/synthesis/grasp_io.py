@@ -7,8 +7,8 @@ from pathlib import Path
 
 import numpy as np
 
-from ffcgs_jax import files
-from ffcgs_jax.errors import FfcgsError, check_grasp_set
+from ffcgs_jax.core import files
+from ffcgs_jax.core.errors import FfcgsError, check_grasp_set
 
 
 def save_npz(gs, path: str | Path) -> None:

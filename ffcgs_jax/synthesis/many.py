@@ -20,8 +20,8 @@ from typing import NamedTuple
 
 import trimesh
 
-from ffcgs_jax.config import check_all
-from ffcgs_jax.errors import FfcgsError
+from ffcgs_jax.core.config import check_all
+from ffcgs_jax.core.errors import FfcgsError
 from ffcgs_jax.evaluation.device_metrics import mesh_table
 from ffcgs_jax.geometry import objects as builtin
 from ffcgs_jax.geometry.config import SDFConfig

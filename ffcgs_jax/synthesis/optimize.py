@@ -22,7 +22,7 @@ from ffcgs_jax.hand.kinematics import Hand
 from ffcgs_jax.kernels.quality import margin_start
 from ffcgs_jax.synthesis.config import EnergyConfig, OptimConfig
 from ffcgs_jax.synthesis.energy import Target, Terms, energy
-from ffcgs_jax.synthesis.optim import adam_init, adam_update
+from ffcgs_jax.kernels.adam import adam_init, adam_update
 
 
 class Trace(NamedTuple):

@@ -13,7 +13,7 @@ from pathlib import Path
 import jax.numpy as jnp
 import numpy as np
 
-from ffcgs_jax.errors import FfcgsError
+from ffcgs_jax.core.errors import FfcgsError
 from ffcgs_jax.learning import evaluator
 from ffcgs_jax.learning.weights import load_evaluator, shipped_evaluator
 from ffcgs_jax.runtime import progress

@@ -23,18 +23,18 @@ import jax.numpy as jnp
 import numpy as np
 from jax.sharding import Mesh
 
-from ffcgs_jax.errors import FfcgsError
+from ffcgs_jax.core.errors import FfcgsError
 from ffcgs_jax.geometry import sdf as S
 from ffcgs_jax.geometry.sdf import GradientSDF
 from ffcgs_jax.hand.kinematics import Hand
 from ffcgs_jax.hand.sites import default_standoff, palm_centre_root
-from ffcgs_jax.files import check_file
+from ffcgs_jax.core.files import check_file
 from ffcgs_jax.learning import cvae
 from ffcgs_jax.learning.weights import load_weights, shipped_weights
 from ffcgs_jax.synthesis import filters as F
-from ffcgs_jax.synthesis import sharding
+from ffcgs_jax.runtime import sharding
 from ffcgs_jax.synthesis.config import SAMPLERS, SamplerConfig
-from ffcgs_jax.types import Array, Bool, Float
+from ffcgs_jax.core.types import Array, Bool, Float
 
 Sampler = Callable[[jax.Array, GradientSDF, int], jax.Array]
 

@@ -2,8 +2,8 @@
 
 import dataclasses
 
-from ffcgs_jax.config import check_integer
-from ffcgs_jax.errors import FfcgsError
+from ffcgs_jax.core.config import check_integer
+from ffcgs_jax.core.errors import FfcgsError
 
 
 @dataclasses.dataclass(frozen=True)

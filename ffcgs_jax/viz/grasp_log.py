@@ -39,8 +39,8 @@ from pathlib import Path
 
 import numpy as np
 
-from ffcgs_jax import files
-from ffcgs_jax.version import __version__
+from ffcgs_jax.core import files
+from ffcgs_jax.core.version import __version__
 
 NUMBERS = {"type": "array", "items": {"type": "number"}}
 SCHEMAS = {

@@ -5,7 +5,7 @@ import trimesh
 from PIL import Image, ImageDraw
 
 from ffcgs_jax.hand.kinematics import Hand
-from ffcgs_jax.errors import check_grasp_set
+from ffcgs_jax.core.errors import check_grasp_set
 from ffcgs_jax.viz import render, scene
 
 

@@ -26,8 +26,8 @@ import mujoco
 import numpy as np
 from PIL import Image, ImageDraw, ImageFont
 
-from ffcgs_jax import files
-from ffcgs_jax.errors import FfcgsError
+from ffcgs_jax.core import files
+from ffcgs_jax.core.errors import FfcgsError
 from ffcgs_jax.physics import backend as physics_backend
 from ffcgs_jax.physics import dexgraspbench as dgb
 from ffcgs_jax.physics import protocols as physics_protocols

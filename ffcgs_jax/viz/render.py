@@ -35,8 +35,8 @@ import numpy as np
 from jaxtyping import Float, Int, UInt8
 from PIL import Image, ImageDraw
 
-from ffcgs_jax import files
-from ffcgs_jax.errors import FfcgsError
+from ffcgs_jax.core import files
+from ffcgs_jax.core.errors import FfcgsError
 from ffcgs_jax.viz.render_software import AMBIENT, FILL_LIGHT, HEADLIGHT, Camera, background, draw, fill_light_direction
 
 BACKENDS = ("auto", "mujoco", "software")

@@ -3,7 +3,7 @@ or of physics results, as `ffcgs eval`."""
 
 import numpy as np
 
-from ffcgs_jax.errors import FfcgsError
+from ffcgs_jax.core.errors import FfcgsError
 from ffcgs_jax.physics import protocols as physics_protocols
 from ffcgs_jax.physics.config import ALL_PROTOCOLS
 from ffcgs_jax.synthesis.grasp import GraspSet, summary_rows

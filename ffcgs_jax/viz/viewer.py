@@ -18,7 +18,7 @@ import mujoco
 import numpy as np
 import trimesh
 
-from ffcgs_jax.errors import FfcgsError, check_grasp_set
+from ffcgs_jax.core.errors import FfcgsError, check_grasp_set
 from ffcgs_jax.evaluation.ranking import ranked
 from ffcgs_jax.hand import kinematics as K
 
@@ -268,7 +268,7 @@ def _on_demand(server, view: GraspView, cfg: dict) -> None:
     def samples():
         from ffcgs_jax.hand import sites
         from ffcgs_jax.synthesis import samplers
-        from ffcgs_jax.config import from_dict
+        from ffcgs_jax.core.config import from_dict
         from ffcgs_jax.synthesis.config import FilterConfig, SamplerConfig
 
         name = cfg.get("sampler", "geometric")

@@ -11,7 +11,7 @@ from PIL import Image
 
 from ffcgs_jax.cli import commands as cli
 from ffcgs_jax.cli import main as cli_main
-from ffcgs_jax.config import from_dict
+from ffcgs_jax.core.config import from_dict
 from ffcgs_jax.geometry import objects
 from ffcgs_jax.geometry import sdf as sdf_mod
 

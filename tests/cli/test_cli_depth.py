@@ -12,7 +12,7 @@ import pytest
 import trimesh
 from PIL import Image
 
-from ffcgs_jax import files
+from ffcgs_jax.core import files
 from ffcgs_jax.cli import main as cli_main
 from ffcgs_jax.evaluation import metrics
 from ffcgs_jax.geometry import depth_io, mesh_io, sdf

@@ -19,7 +19,7 @@ import numpy as np
 import pytest
 import trimesh
 
-from ffcgs_jax import files
+from ffcgs_jax.core import files
 from ffcgs_jax.cli import main as cli_main
 from ffcgs_jax.cli.commands import GraspCmd
 from ffcgs_jax.geometry import mesh_io

@@ -13,9 +13,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from ffcgs_jax import files, locks
+from ffcgs_jax.core import files, locks
 from ffcgs_jax.cli import main as cli_main
-from ffcgs_jax.errors import FfcgsError
+from ffcgs_jax.core.errors import FfcgsError
 from ffcgs_jax.geometry import depth_io, mesh_io
 from ffcgs_jax.synthesis import grasp_io
 
@@ -153,7 +153,7 @@ def test_train_takes_only_a_runs_own_config(work, capsys):
     assert "--out RUN holds a config.toml that no ffcgs train run wrote (RUN/config.toml)" in err, err
     assert _tree(run) == before
     from ffcgs_jax.learning.config import TrainConfig, to_toml
-    from ffcgs_jax.learning.train import RUN_CONFIG_MARK
+    from ffcgs_jax.training.train import RUN_CONFIG_MARK
 
     (run / "config.toml").write_text(f"{RUN_CONFIG_MARK} (an earlier run)\n{to_toml(TrainConfig(out='RUN'))}")
     code, _, err = _run(capsys, "train", "--data.path", "missing.mcap", "--out", "RUN")

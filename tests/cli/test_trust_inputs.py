@@ -16,10 +16,10 @@ import numpy as np
 import pytest
 import trimesh
 
-from ffcgs_jax import files
+from ffcgs_jax.core import files
 from ffcgs_jax.cli import grasp_many
 from ffcgs_jax.cli import main as cli_main
-from ffcgs_jax.errors import FfcgsError
+from ffcgs_jax.core.errors import FfcgsError
 from ffcgs_jax.geometry import mesh_io
 from ffcgs_jax.hand.spec import load_spec
 from ffcgs_jax.learning import weights as shipped

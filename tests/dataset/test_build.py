@@ -29,7 +29,7 @@ from ffcgs_jax.dataset import mcap_io as dataset_io
 from ffcgs_jax.dataset import objects as dataset_objects
 from ffcgs_jax.dataset import planner, schema
 from ffcgs_jax.dataset.config import DatasetConfig
-from ffcgs_jax.errors import FfcgsError
+from ffcgs_jax.core.errors import FfcgsError
 from ffcgs_jax.geometry import mesh_io, objects, procedural
 from ffcgs_jax.geometry import sdf as sdf_mod
 from ffcgs_jax.geometry.config import SDFConfig

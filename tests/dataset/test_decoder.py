@@ -16,7 +16,7 @@ from mcap.writer import Writer
 from ffcgs_jax.dataset import mcap_io as dio
 from ffcgs_jax.dataset import schema
 from ffcgs_jax.dataset.decoder import DecoderFactory
-from ffcgs_jax.errors import FfcgsError
+from ffcgs_jax.core.errors import FfcgsError
 
 from paths import DATA
 from test_mcap_io import assert_records_equal, build, plan

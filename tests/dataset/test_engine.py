@@ -22,17 +22,17 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from ffcgs_jax import files
+from ffcgs_jax.core import files
 from ffcgs_jax.cli import main as cli_main
 from ffcgs_jax.dataset import build as dataset_build
 from ffcgs_jax.dataset import engine
 from ffcgs_jax.dataset import mcap_io as dataset_io
 from ffcgs_jax.dataset import objects as dataset_objects
 from ffcgs_jax.dataset.config import DatasetConfig
-from ffcgs_jax.errors import FfcgsError
+from ffcgs_jax.core.errors import FfcgsError
 from ffcgs_jax.geometry import objects as builtin_objects
 from ffcgs_jax.geometry import procedural
-from ffcgs_jax.learning import data as learning_data
+from ffcgs_jax.training import data as learning_data
 from ffcgs_jax.physics import runner as physics_runner
 from ffcgs_jax.physics.config import PhysicsConfig
 

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from mcap.writer import Writer
 
-from ffcgs_jax import files
+from ffcgs_jax.core import files
 from ffcgs_jax.cli import main as cli_main
 from ffcgs_jax.dataset import export
 from ffcgs_jax.dataset import mcap_io as dio

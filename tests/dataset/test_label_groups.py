@@ -20,7 +20,7 @@ from ffcgs_jax.dataset import engine, label
 from ffcgs_jax.dataset import mcap_io as dataset_io
 from ffcgs_jax.dataset import objects as dataset_objects
 from ffcgs_jax.dataset.config import DatasetConfig
-from ffcgs_jax.errors import FfcgsError
+from ffcgs_jax.core.errors import FfcgsError
 from ffcgs_jax.hand import kinematics as K
 from ffcgs_jax.hand import spec as hand_spec
 from ffcgs_jax.physics import runner as physics_runner

@@ -10,7 +10,7 @@ import pytest
 
 from ffcgs_jax.dataset import mcap_io as dio
 from ffcgs_jax.dataset import schema
-from ffcgs_jax.errors import FfcgsError
+from ffcgs_jax.core.errors import FfcgsError
 
 R = 8
 CONFIG = {"rotations": 2, "sdf": {"resolution": R}, "seed": 3}

@@ -11,7 +11,7 @@ import pytest
 
 from ffcgs_jax.dataset import planner as PL
 from ffcgs_jax.dataset.config import PlannerConfig
-from ffcgs_jax.errors import FfcgsError
+from ffcgs_jax.core.errors import FfcgsError
 from ffcgs_jax.geometry import mesh_io
 from ffcgs_jax.geometry import sdf as S
 from ffcgs_jax.geometry.config import SDFConfig

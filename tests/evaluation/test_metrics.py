@@ -9,7 +9,7 @@ import pytest
 import scipy.optimize
 import trimesh
 
-from ffcgs_jax.errors import FfcgsError
+from ffcgs_jax.core.errors import FfcgsError
 from ffcgs_jax.evaluation import metrics
 from ffcgs_jax.kernels import directions
 

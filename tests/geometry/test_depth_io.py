@@ -7,7 +7,7 @@ import pytest
 import trimesh
 from PIL import Image
 
-from ffcgs_jax.errors import FfcgsError
+from ffcgs_jax.core.errors import FfcgsError
 from ffcgs_jax.geometry import depth_io, depth_render
 
 SCALE = 0.001  # m per PNG unit

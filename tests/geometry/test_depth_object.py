@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 import trimesh
 
-from ffcgs_jax.errors import FfcgsError
+from ffcgs_jax.core.errors import FfcgsError
 from ffcgs_jax.geometry import depth_io, depth_object, depth_render, surface_nets
 
 W, H = 160, 120

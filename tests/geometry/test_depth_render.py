@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 import trimesh
 
-from ffcgs_jax.errors import FfcgsError
+from ffcgs_jax.core.errors import FfcgsError
 from ffcgs_jax.geometry import depth_render, mesh_io
 
 DEPTH_TOL = 1e-6  # m: ray cast vs closed form (float64 on both sides)

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 import trimesh
 
-from ffcgs_jax.errors import FfcgsError
+from ffcgs_jax.core.errors import FfcgsError
 from ffcgs_jax.geometry import mesh_io, objects
 
 BUILTINS = ("ball", "banana", "bottle", "box", "can", "mug")

@@ -8,7 +8,7 @@ import pytest
 import trimesh
 from scipy.interpolate import RegularGridInterpolator
 
-from ffcgs_jax.errors import FfcgsError
+from ffcgs_jax.core.errors import FfcgsError
 from ffcgs_jax.geometry import sdf
 from ffcgs_jax.geometry.config import SDFConfig
 

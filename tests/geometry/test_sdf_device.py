@@ -8,7 +8,7 @@ import pytest
 import trimesh
 from paths import SHARED
 
-from ffcgs_jax.errors import FfcgsError
+from ffcgs_jax.core.errors import FfcgsError
 from ffcgs_jax.geometry import sdf, sdf_build, sdf_device
 from ffcgs_jax.geometry.config import SDFConfig
 from ffcgs_jax.kernels import triangles

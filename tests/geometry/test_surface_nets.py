@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from ffcgs_jax.errors import FfcgsError
+from ffcgs_jax.core.errors import FfcgsError
 from ffcgs_jax.geometry.surface_nets import zero_level_mesh
 
 RES, H = 40, 0.005

@@ -8,7 +8,7 @@ import pytest
 import trimesh
 from scipy.spatial import cKDTree
 
-from ffcgs_jax.errors import FfcgsError
+from ffcgs_jax.core.errors import FfcgsError
 from ffcgs_jax.geometry import depth_io, depth_render, sdf, tsdf
 from ffcgs_jax.runtime import compile_clock
 

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from ffcgs_jax.errors import FfcgsError
+from ffcgs_jax.core.errors import FfcgsError
 from ffcgs_jax.hand import kinematics as K
 
 from paths import DATA

@@ -10,7 +10,7 @@ import tomllib
 
 import pytest
 
-from ffcgs_jax.errors import FfcgsError
+from ffcgs_jax.core.errors import FfcgsError
 from ffcgs_jax.hand.spec import load_spec
 
 from paths import DATA

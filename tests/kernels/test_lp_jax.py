@@ -7,7 +7,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from ffcgs_jax.errors import FfcgsError
+from ffcgs_jax.core.errors import FfcgsError
 from ffcgs_jax.evaluation import metrics
 from ffcgs_jax.kernels import lp_host, lp_jax, quality
 
@@ -191,7 +191,7 @@ def test_quality_q_distance_paths_agree_with_gradients():
 
 
 def test_unknown_solver_is_refused():
-    from ffcgs_jax.errors import FfcgsError
+    from ffcgs_jax.core.errors import FfcgsError
     from ffcgs_jax.synthesis.config import EnergyConfig
 
     with pytest.raises(FfcgsError, match="unknown energy.lp_solver 'highs'; solvers: jax, proxsuite"):

@@ -1,4 +1,4 @@
-"""The CVAE sampler network (`cvae.py`, `layers.py`), its Adam (`synthesis/optim.py`) and checkpoints, against
+"""The CVAE sampler network (`cvae.py`, `layers.py`), its Adam (`kernels/adam.py`) and checkpoints, against
 float64 references and finite differences."""
 
 import jax
@@ -6,11 +6,11 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from ffcgs_jax.errors import FfcgsError
+from ffcgs_jax.core.errors import FfcgsError
 from ffcgs_jax.learning import checkpoint, cvae
 from ffcgs_jax.learning import layers as nn
 from ffcgs_jax.learning.config import ModelConfig
-from ffcgs_jax.synthesis.optim import adam_init, adam_update
+from ffcgs_jax.kernels.adam import adam_init, adam_update
 
 from cvae_toy import sphere_grid
 
@@ -146,7 +146,7 @@ def test_apply_batched_equals_loop(params, grid):
 
 def test_loss_gradient_matches_finite_differences(params, grid):
     """d loss / d params along random directions, central differences in float64."""
-    from ffcgs_jax.learning.train import batch_loss
+    from ffcgs_jax.training.train import batch_loss
 
     g, origin, h = grid
     rng = np.random.default_rng(9)

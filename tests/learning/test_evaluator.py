@@ -14,13 +14,14 @@ import pytest
 from ffcgs_jax.cli import train_command
 from ffcgs_jax.dataset import mcap_io as dio
 from ffcgs_jax.dataset import schema
-from ffcgs_jax.errors import FfcgsError
+from ffcgs_jax.core.errors import FfcgsError
 from ffcgs_jax.evaluation import rank_metrics, ranking
 from ffcgs_jax.geometry import mesh_io
 from ffcgs_jax.geometry import sdf as sdf_mod
 from ffcgs_jax.geometry.config import SDFConfig
 from ffcgs_jax.hand import kinematics as K
-from ffcgs_jax.learning import checkpoint, evaluator, evaluator_data, evaluator_train
+from ffcgs_jax.learning import checkpoint, evaluator
+from ffcgs_jax.training import evaluator_data, evaluator_train
 from ffcgs_jax.learning.config import (CVConfig, EvaluatorDataConfig, EvaluatorNetConfig, EvaluatorOptimConfig,
                                        EvaluatorTrainConfig)
 from ffcgs_jax.learning.weights import EVALUATOR_FORMAT, load_evaluator, shipped_evaluator

@@ -9,7 +9,7 @@ import mujoco
 import numpy as np
 import pytest
 
-from ffcgs_jax.errors import FfcgsError
+from ffcgs_jax.core.errors import FfcgsError
 from ffcgs_jax.geometry import mesh_io
 from ffcgs_jax.hand import spec as hand_spec
 from ffcgs_jax.physics import backend_cpu

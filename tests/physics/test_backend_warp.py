@@ -6,7 +6,7 @@ on disk), so these tests need `pip install -e ".[warp]"` and are skipped without
 import numpy as np
 import pytest
 
-from ffcgs_jax.errors import FfcgsError
+from ffcgs_jax.core.errors import FfcgsError
 from ffcgs_jax.physics import backend_warp
 from ffcgs_jax.physics import runner as physics
 from ffcgs_jax.physics.config import PhysicsConfig

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 import trimesh
 
-from ffcgs_jax.errors import FfcgsError
+from ffcgs_jax.core.errors import FfcgsError
 from ffcgs_jax.geometry import mesh_io, procedural
 from ffcgs_jax.physics import collision, convex, voxel_parts
 from ffcgs_jax.physics.config import PhysicsConfig

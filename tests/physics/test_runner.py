@@ -12,7 +12,7 @@ import trimesh
 
 from ffcgs_jax.cli import commands as cli
 from ffcgs_jax.cli import main as cli_main
-from ffcgs_jax.errors import FfcgsError
+from ffcgs_jax.core.errors import FfcgsError
 from ffcgs_jax.evaluation.ranking import ranked
 from ffcgs_jax.geometry import mesh_io
 from ffcgs_jax.hand import spec as hand_spec

@@ -11,7 +11,7 @@ import pytest
 
 import ffcgs_jax as fj
 from ffcgs_jax.cli import main as cli_main
-from ffcgs_jax.errors import FfcgsError
+from ffcgs_jax.core.errors import FfcgsError
 from ffcgs_jax.geometry import mesh_io
 from ffcgs_jax.hand import spec as hand_spec
 from ffcgs_jax.physics import backend, backend_cpu

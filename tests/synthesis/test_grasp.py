@@ -12,7 +12,7 @@ import mujoco
 import numpy as np
 import pytest
 
-from ffcgs_jax.errors import FfcgsError
+from ffcgs_jax.core.errors import FfcgsError
 from ffcgs_jax.geometry import mesh_io
 from ffcgs_jax.geometry import sdf as sdf_mod
 from ffcgs_jax.geometry.config import SDFConfig

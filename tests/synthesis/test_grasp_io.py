@@ -9,7 +9,7 @@ import json
 import numpy as np
 import pytest
 
-from ffcgs_jax.errors import FfcgsError
+from ffcgs_jax.core.errors import FfcgsError
 from ffcgs_jax.synthesis import grasp_io
 from ffcgs_jax.viz import grasp_log
 from ffcgs_jax.synthesis.config import EnergyConfig, OptimConfig

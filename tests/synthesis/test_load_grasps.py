@@ -9,7 +9,7 @@ import pytest
 
 import ffcgs_jax as fj
 from ffcgs_jax.cli.commands import GraspCmd
-from ffcgs_jax.config import load
+from ffcgs_jax.core.config import load
 
 from paths import REPO
 

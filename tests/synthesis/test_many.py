@@ -8,7 +8,7 @@ import time
 import pytest
 import trimesh
 
-from ffcgs_jax.errors import FfcgsError
+from ffcgs_jax.core.errors import FfcgsError
 from ffcgs_jax.geometry import objects
 from ffcgs_jax.hand import kinematics as K
 from ffcgs_jax.synthesis import many

@@ -14,7 +14,7 @@ from ffcgs_jax.geometry.config import SDFConfig
 from ffcgs_jax.hand import kinematics as K
 from ffcgs_jax.synthesis import energy as En
 from ffcgs_jax.synthesis.config import EnergyConfig, OptimConfig
-from ffcgs_jax.synthesis.optim import adam_init, adam_update
+from ffcgs_jax.kernels.adam import adam_init, adam_update
 from ffcgs_jax.synthesis.optimize import optimize, twist_pose
 
 TOY = "tests/data/toy_hand/toy.toml"

@@ -6,7 +6,7 @@ import pytest
 import trimesh
 from PIL import Image
 
-from ffcgs_jax.errors import FfcgsError
+from ffcgs_jax.core.errors import FfcgsError
 from ffcgs_jax.viz import render, render_software
 
 W, H = 120, 100

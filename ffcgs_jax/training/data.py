@@ -12,8 +12,8 @@ from typing import NamedTuple
 import numpy as np
 
 from ffcgs_jax.dataset import mcap_io as dataset_io
-from ffcgs_jax.errors import FfcgsError
-from ffcgs_jax.files import check_file
+from ffcgs_jax.core.errors import FfcgsError
+from ffcgs_jax.core.files import check_file
 
 
 class TrainData(NamedTuple):

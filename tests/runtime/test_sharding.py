@@ -9,7 +9,7 @@ import textwrap
 import numpy as np
 import pytest
 
-from ffcgs_jax.errors import FfcgsError
+from ffcgs_jax.core.errors import FfcgsError
 from ffcgs_jax.synthesis import grasp
 
 # Two CPU "devices" need an XLA flag set before JAX starts, hence a fresh interpreter. The cheap configuration

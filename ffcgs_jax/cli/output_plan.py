@@ -21,8 +21,8 @@ import dataclasses
 import os
 from pathlib import Path
 
-from ffcgs_jax import files, locks
-from ffcgs_jax.errors import FfcgsError
+from ffcgs_jax.core import files, locks
+from ffcgs_jax.core.errors import FfcgsError
 
 # format -> (what is written, the extensions its name may end in)
 FORMATS: dict[str, tuple[str, tuple[str, ...]]] = {

@@ -25,18 +25,18 @@ import jax.numpy as jnp
 import numpy as np
 from tqdm import tqdm
 
-from ffcgs_jax import files
-from ffcgs_jax.config import check_all
-from ffcgs_jax.version import __version__
-from ffcgs_jax.errors import FfcgsError
+from ffcgs_jax.core import files
+from ffcgs_jax.core.config import check_all
+from ffcgs_jax.core.version import __version__
+from ffcgs_jax.core.errors import FfcgsError
 from ffcgs_jax.hand import kinematics as K
 from ffcgs_jax.hand import sites
 from ffcgs_jax.learning import checkpoint, cvae
-from ffcgs_jax.learning import data as cvae_data
+from ffcgs_jax.training import data as cvae_data
 from ffcgs_jax.learning.config import KLConfig, TrainConfig, TrainOptimConfig, to_toml
 from ffcgs_jax.learning.weights import WEIGHTS_FORMAT
 from ffcgs_jax.runtime.progress import compiling
-from ffcgs_jax.synthesis.optim import AdamState, adam_init, adam_update
+from ffcgs_jax.kernels.adam import AdamState, adam_init, adam_update
 
 
 def hand_points(hand_name: str) -> tuple[np.ndarray, np.ndarray, str]:
@@ -210,7 +210,7 @@ def train(cfg: TrainConfig, hand: str | None = None, progress: bool = True, unti
           data: cvae_data.TrainData | None = None) -> dict | None:
     """Train one configuration (one fold); see the module docstring. Returns a summary dict (also in summary.json).
 
-    `data` is `learning.data.load(cfg.data.path, cfg.data.noisy)` when a caller already holds it (the folds of a
+    `data` is `training.data.load(cfg.data.path, cfg.data.noisy)` when a caller already holds it (the folds of a
     cross-validation share one read of the file); None reads it here.
 
     `until_epoch` stops after that many epochs, checkpointed, as an interruption would (time-boxed sessions,

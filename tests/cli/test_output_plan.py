@@ -16,11 +16,11 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from paths import DATA
 
-from ffcgs_jax import files
+from ffcgs_jax.core import files
 from ffcgs_jax.cli import main as cli_main
 from ffcgs_jax.cli.commands import COMMANDS, PLANS
-from ffcgs_jax.errors import FfcgsError
-from ffcgs_jax.output_plan import FORMATS, Input, Output, Plan
+from ffcgs_jax.core.errors import FfcgsError
+from ffcgs_jax.cli.output_plan import FORMATS, Input, Output, Plan
 
 
 def _tree(folder: Path) -> dict[str, str]:

@@ -4,7 +4,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ffcgs_jax.synthesis import fetch
+from ffcgs_jax.runtime import fetch
 
 
 def test_packed_copy_equals_leafwise_copy():

@@ -14,8 +14,8 @@ from tqdm import tqdm
 
 from ffcgs_jax.dataset import mcap_io as dataset_io
 from ffcgs_jax.dataset.schema import SUCCESS_KEYS
-from ffcgs_jax.errors import FfcgsError
-from ffcgs_jax.files import check_file
+from ffcgs_jax.core.errors import FfcgsError
+from ffcgs_jax.core.files import check_file
 from ffcgs_jax.geometry.sdf import GradientSDF
 from ffcgs_jax.learning import evaluator
 from ffcgs_jax.runtime.fixed_shapes import pad_rows

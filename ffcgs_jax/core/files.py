@@ -45,9 +45,9 @@ from typing import IO
 
 import numpy as np
 
-from ffcgs_jax import locks
-from ffcgs_jax.errors import FfcgsError
-from ffcgs_jax.locks import MARK, locked
+from ffcgs_jax.core import locks
+from ffcgs_jax.core.errors import FfcgsError
+from ffcgs_jax.core.locks import MARK, locked
 
 
 def check_output(path: str | Path, what: str = "output") -> Path:

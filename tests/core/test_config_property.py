@@ -1,4 +1,4 @@
-"""Property tests of the config parser (`ffcgs_jax.config`) over every config dataclass: what it accepts it keeps
+"""Property tests of the config parser (`ffcgs_jax.core.config`) over every config dataclass: what it accepts it keeps
 exactly and round-trips; unknown keys, wrong types, NaN, infinities, bools for numbers and out-of-range values are
 refused with a one-line `FfcgsError`; random TOML either loads or is refused that way, never another exception.
 
@@ -13,10 +13,10 @@ import pytest
 from hypothesis import HealthCheck, assume, given, settings
 from hypothesis import strategies as st
 
-from ffcgs_jax import config as ffcgs_config
-from ffcgs_jax.config import check_integer, check_range, from_dict
+from ffcgs_jax.core import config as ffcgs_config
+from ffcgs_jax.core.config import check_integer, check_range, from_dict
 from ffcgs_jax.dataset.config import DatasetConfig
-from ffcgs_jax.errors import FfcgsError
+from ffcgs_jax.core.errors import FfcgsError
 from ffcgs_jax.geometry.config import SDFConfig
 from ffcgs_jax.learning.config import TrainConfig, to_toml
 from ffcgs_jax.physics.config import PhysicsConfig

@@ -1,4 +1,4 @@
-"""Folders and files that belong to their run (`ffcgs_jax.files`, issue 47): a manifest names the command and the
+"""Folders and files that belong to their run (`ffcgs_jax.core.files`, issue 47): a manifest names the command and the
 run that wrote it and a folder of another command is refused; only temporaries marked as the package's are cleaned;
 updates of one file or manifest are serialised by a lock; writes follow symlinks."""
 
@@ -13,10 +13,11 @@ from pathlib import Path
 
 import pytest
 
-from ffcgs_jax import files, locks, output_plan
-from ffcgs_jax.errors import FfcgsError
+from ffcgs_jax.core import files, locks
+from ffcgs_jax.cli import output_plan
+from ffcgs_jax.core.errors import FfcgsError
 
-PACKAGE = Path(files.__file__).parent
+PACKAGE = Path(files.__file__).parent.parent
 
 
 def _dead_pid() -> int:
@@ -140,7 +141,7 @@ def test_a_lock_serialises_updates_and_leaves_no_lock_file(tmp_path, capsys):
 
 def test_a_lock_of_a_killed_run_is_free_and_cleaned(tmp_path):
     path = tmp_path / "g.npz"
-    code = f"from ffcgs_jax import locks\nwith locks.locked({str(path)!r}):\n    print('held', flush=True)\n" \
+    code = f"from ffcgs_jax.core import locks\nwith locks.locked({str(path)!r}):\n    print('held', flush=True)\n" \
            "    import time; time.sleep(60)\n"
     p = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, text=True)
     try:
@@ -170,7 +171,7 @@ def test_concurrent_manifest_updates_lose_no_name(tmp_path):
     """Four processes fill one folder at once, as four `ffcgs grasp` runs would: the manifest names every file."""
     code = textwrap.dedent("""
         import sys
-        from ffcgs_jax import files
+        from ffcgs_jax.core import files
         for i in range(15):
             files.add_to_manifest(sys.argv[1], f"{sys.argv[2]}_{i}.npz", "ffcgs grasp")
     """)

@@ -26,22 +26,22 @@ import jax.numpy as jnp
 import numpy as np
 from tqdm import tqdm
 
-from ffcgs_jax import files
-from ffcgs_jax.config import check_all
-from ffcgs_jax.errors import FfcgsError
+from ffcgs_jax.core import files
+from ffcgs_jax.core.config import check_all
+from ffcgs_jax.core.errors import FfcgsError
 from ffcgs_jax.evaluation import rank_metrics
 from ffcgs_jax.hand import kinematics as K
 from ffcgs_jax.learning import checkpoint, evaluator
 from ffcgs_jax.learning import layers as nn
-from ffcgs_jax.learning import data as cvae_data
-from ffcgs_jax.learning import evaluator_data
+from ffcgs_jax.training import data as cvae_data
+from ffcgs_jax.training import evaluator_data
 from ffcgs_jax.learning.config import EvaluatorOptimConfig, EvaluatorTrainConfig, to_toml
-from ffcgs_jax.learning.train import dataset_hand, run_folder, truncate_log
+from ffcgs_jax.training.train import dataset_hand, run_folder, truncate_log
 from ffcgs_jax.learning.weights import EVALUATOR_FORMAT
 from ffcgs_jax.runtime.fixed_shapes import pad_rows
 from ffcgs_jax.runtime.progress import compiling
-from ffcgs_jax.synthesis.optim import AdamState, adam_init, adam_update
-from ffcgs_jax.version import __version__
+from ffcgs_jax.kernels.adam import AdamState, adam_init, adam_update
+from ffcgs_jax.core.version import __version__
 
 
 def loss_fn(net, norm, x, y):

@@ -23,7 +23,7 @@ import warnings
 from collections.abc import Iterator
 from pathlib import Path
 
-from ffcgs_jax.errors import FfcgsError
+from ffcgs_jax.core.errors import FfcgsError
 
 MARK = "ffcgs"  # in the name of every temporary and lock file the package makes, and in no user's file
 LOCK_NAME = re.compile(rf"\..+\.{MARK}\.lock")  # `lock_file`'s names

@@ -1,4 +1,4 @@
-"""Training the CVAE (`learning/train.py`, `learning/data.py`, `python -m train.sampler`) on a toy dataset, and
+"""Training the CVAE (`training/train.py`, `training/data.py`, `python -m train.sampler`) on a toy dataset, and
 the cvae sampler behind `synthesis.samplers.make_sampler` / `synthesize`."""
 
 import dataclasses
@@ -10,11 +10,11 @@ import jax
 import numpy as np
 import pytest
 
-from ffcgs_jax.config import load
-from ffcgs_jax.errors import FfcgsError
+from ffcgs_jax.core.config import load
+from ffcgs_jax.core.errors import FfcgsError
 from ffcgs_jax.learning import checkpoint
-from ffcgs_jax.learning import data as cvae_data
-from ffcgs_jax.learning import train as cvae_train
+from ffcgs_jax.training import data as cvae_data
+from ffcgs_jax.training import train as cvae_train
 from ffcgs_jax.learning.config import CVConfig, DataConfig, ModelConfig, TrainConfig, TrainOptimConfig, to_toml
 
 from cvae_toy import make_toy_dataset

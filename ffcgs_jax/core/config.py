@@ -16,7 +16,7 @@ import typing
 from pathlib import Path
 from typing import Any, TypeVar
 
-from ffcgs_jax.errors import FfcgsError
+from ffcgs_jax.core.errors import FfcgsError
 
 T = TypeVar("T")
 SEED_MAX = 2**63 - 1  # seeds are int64 (JAX's and NumPy's PRNG keys take them)
@@ -113,7 +113,7 @@ def load(cls: type[T], path: str | Path) -> T:
 
 def read_toml(path: str | Path, what: str = "config file") -> dict:
     """The tables of a TOML file (`what`: how messages name it), or FfcgsError naming a missing or malformed file."""
-    from ffcgs_jax.files import read_text
+    from ffcgs_jax.core.files import read_text
 
     text = read_text(path, what)
     try:

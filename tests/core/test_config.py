@@ -4,8 +4,8 @@ import dataclasses
 
 import pytest
 
-from ffcgs_jax.config import from_dict, load
-from ffcgs_jax.errors import FfcgsError
+from ffcgs_jax.core.config import from_dict, load
+from ffcgs_jax.core.errors import FfcgsError
 from ffcgs_jax.geometry.config import SDFConfig
 from ffcgs_jax.viz.config import RenderConfig
 
@@ -94,8 +94,8 @@ def test_integer_fields_refuse_floats_and_bools(cls, field):
     import dataclasses
     import importlib
 
-    from ffcgs_jax.config import check_all
-    from ffcgs_jax.errors import FfcgsError
+    from ffcgs_jax.core.config import check_all
+    from ffcgs_jax.core.errors import FfcgsError
 
     module, name = cls.rsplit(".", 1)
     klass = getattr(importlib.import_module(f"ffcgs_jax.{module}"), name)
@@ -123,7 +123,7 @@ def test_a_partial_section_keeps_the_enclosing_configs_defaults():
 def test_nested_settings_take_either_spelling_on_every_command():
     """`--optim.iters` works where flags are bare (grasp) and `--population` where they keep their section (dataset
     build, when one section alone has the name); both parse to the same config as the command's own spelling."""
-    from ffcgs_jax.config import with_overrides
+    from ffcgs_jax.core.config import with_overrides
     from ffcgs_jax.dataset.config import DatasetConfig
     from ffcgs_jax.synthesis.config import GraspConfig
 

@@ -5,10 +5,11 @@ import jax
 import jax.numpy as jnp
 import pytest
 
-from ffcgs_jax.errors import FfcgsError
+from ffcgs_jax.core.errors import FfcgsError
 from ffcgs_jax.geometry import mesh_io
 from ffcgs_jax.hand import kinematics as K
-from ffcgs_jax.synthesis import grasp, memory
+from ffcgs_jax.runtime import memory
+from ffcgs_jax.synthesis import grasp
 from ffcgs_jax.synthesis.config import EnergyConfig, GraspConfig, OptimConfig
 
 from paths import DATA

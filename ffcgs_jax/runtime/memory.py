@@ -7,7 +7,7 @@ backend. Memory grows about linearly with the batch, so the refusal names the la
 
 import jax
 
-from ffcgs_jax.errors import FfcgsError
+from ffcgs_jax.core.errors import FfcgsError
 
 HEADROOM = 0.9  # of the free memory a batch may plan to use: allocator fragmentation and the host's other needs
 

@@ -1,4 +1,4 @@
-"""The one writer every output goes through (`ffcgs_jax.files`): atomic replacement, outputs checked before the
+"""The one writer every output goes through (`ffcgs_jax.core.files`): atomic replacement, outputs checked before the
 work, input files recognised by their content."""
 
 import os
@@ -6,8 +6,8 @@ import os
 import numpy as np
 import pytest
 
-from ffcgs_jax import files
-from ffcgs_jax.errors import FfcgsError
+from ffcgs_jax.core import files
+from ffcgs_jax.core.errors import FfcgsError
 
 
 def test_atomic_write_replaces_the_file(tmp_path):
