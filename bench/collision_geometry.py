@@ -176,7 +176,7 @@ def agreement(sets, methods, n: int, budget: float, today_budget: float, part: s
     from ffcgs_jax.physics import runner
 
     hand, spec = fj.load_hand("svh"), hand_spec.load_spec("svh")
-    cfg = PhysicsConfig(friction=0.6, backend="cpu")
+    cfg = PhysicsConfig(sim_friction=0.6, backend="cpu")
     same = {m: {p: [] for p in PROTOCOLS} for m in methods if m != "today"}
     for s in sets:
         for name, mesh in pick(object_set(s), part):

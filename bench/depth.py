@@ -24,7 +24,7 @@ object masks), used clean and with RealSense-like noise (sigma = 0.0015 z^2, 2 %
   `ffcgs grasp --depth` and a robot without the mesh do (the object frame is the cameras' world, the mesh's own frame); `--filter-mesh true`
   gives them the true mesh instead (few grasps pass: the fingertips rest on the fused surface, 1-4 mm from the
   true one, and contact_tol is 2 mm). The `mesh` row plans on the mesh's own SDF. Physics as
-  bench/quality.py (`runner.evaluate`, PhysicsConfig(friction=0.6), lift-shake and six-dir, the grasps' squeeze
+  bench/quality.py (`runner.evaluate`, PhysicsConfig(sim_friction=0.6), lift-shake and six-dir, the grasps' squeeze
   directions) on the TRUE mesh, every returned (valid) grasp best first (`--max-grasps-per-object`).
   Shares pooled over grasps with 95 % Wilson intervals; "vs mesh": the both-protocol share minus the mesh row's, in
   percentage points (target: 5 noisy views within 5 pp); top-1: the object's best returned grasp passes both (no
@@ -148,7 +148,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     if args.res > 128:
         ap.error(f"argument --res: must be <= 128, got {args.res}")
     try:
-        PhysicsConfig(friction=args.friction, backend=args.backend).check()
+        PhysicsConfig(sim_friction=args.friction, backend=args.backend).check()
     except FfcgsError as e:
         ap.error(str(e))
     return args
@@ -205,7 +205,7 @@ def grasp_job(hand, mesh, name: str, cfg: GraspConfig, args, grid=None, filter_m
     if len(tested):
         t1 = time.perf_counter()
         res = runner.evaluate(hand.spec, mesh, gs["wrist_pose"][tested], gs["q"][tested],
-                              PhysicsConfig(friction=args.friction, backend=args.backend), PROTOCOLS,
+                              PhysicsConfig(sim_friction=args.friction, backend=args.backend), PROTOCOLS,
                               squeeze_dir=gs["squeeze_dir"][tested])
         physics_s = time.perf_counter() - t1
         physics = {k: np.asarray(v).tolist() for k, v in res.items() if k.endswith("_success")}

@@ -52,7 +52,7 @@ def run(args) -> list[dict]:
         mesh = mesh_io.load_mesh(mesh_source(name, Path(args.ycb)))
         for mu in frictions:
             t0 = time.perf_counter()
-            cfg = PhysicsConfig(friction=mu, workers=args.workers)
+            cfg = PhysicsConfig(sim_friction=mu, workers=args.workers)
             res = physics.evaluate(spec, mesh, g["wrist_pose"], g["q"], cfg, protocols)
             seconds = time.perf_counter() - t0
             rows.append({

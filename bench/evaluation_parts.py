@@ -56,7 +56,7 @@ def parts(hand, mesh, target, out, cfg, repeats: int) -> dict[str, tuple[float, 
     closest, normals = closest.reshape(b, c, 3), normals.reshape(b, c, 3)
     U = quality.basis(mcfg.basis_size)
     starts = jnp.asarray(sphere_basis(epsilon_search.EPS_STARTS).T, contacts.dtype)
-    wrench_fn = jax.jit(jax.vmap(lambda p, n: quality.primitive_wrenches(p, n, target.centre, target.radius, mcfg.mu,
+    wrench_fn = jax.jit(jax.vmap(lambda p, n: quality.primitive_wrenches(p, n, target.centre, target.radius, mcfg.lp_friction,
                                                                          mcfg.cone_edges)))
     W = wrench_fn(closest, normals)
     lp_fn = jax.jit(jax.vmap(lambda w: lp_jax.q_distance(w, U)[0]))

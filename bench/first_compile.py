@@ -85,7 +85,7 @@ def pivots(gs: fj.GraspSet, obj: str, repeats: int) -> None:
     centre = jnp.asarray(mesh.bounding_box.centroid, jnp.float32)
     radius = float(np.max(np.linalg.norm(mesh.vertices - mesh.bounding_box.centroid, axis=1)))
     cfg = fj.GraspConfig()
-    W = jax.vmap(lambda p, n: quality.primitive_wrenches(p, n, centre, radius, cfg.energy.mu,
+    W = jax.vmap(lambda p, n: quality.primitive_wrenches(p, n, centre, radius, cfg.energy.lp_friction,
                                                          cfg.energy.cone_edges))(contacts, normals)
     starts = jnp.asarray(sphere_basis(epsilon_search.EPS_STARTS).T, jnp.float32)
     print(f"\npart 2: the epsilon search of {W.shape[0]} grasps on {jax.devices()[0].device_kind} "

@@ -50,7 +50,7 @@ DEFAULTS = dict(batches="1,8,32", grasps=128, objects=32, cpu_objects=2, latency
 SMOKE = dict(batches="1", grasps=1, objects=1, cpu_objects=1, latency_objects=1, latency_grasps=1, first_objects=1,
              first_n=1, protocols="lift-shake,six-dir", first_protocols="lift-shake,six-dir")
 # --smoke's physics: short phases (a Warp world-step on a CPU costs about a millisecond) and coarse geometry
-SHORT = dict(friction=1.0, close_time=0.2, settle_time=0.1, lift_height=0.03, shake_cycles=1, shake_amplitude=0.02,
+SHORT = dict(sim_friction=1.0, close_time=0.2, settle_time=0.1, lift_height=0.03, shake_cycles=1, shake_amplitude=0.02,
              push_time=0.2, voxel_cells=32, max_hulls=8)
 
 
@@ -219,14 +219,13 @@ def total(engines: dict[str, dict]) -> dict:
 
 def nominal_steps(protocol: str, cfg, nu: int) -> int:
     """Steps of one grasp's whole programme under `protocol` (no early stop)."""
-    from ffcgs_jax.physics import dexgraspbench as dgb
     from ffcgs_jax.physics import protocols as P
     from ffcgs_jax.physics.backend import Batch
 
     z = np.zeros((1, nu))
     one = Batch(np.zeros((1, 3)), np.array([[1.0, 0, 0, 0]]), z, z, z)
-    if dgb.is_bench(protocol):
-        c = dgb.config(cfg, protocol)
+    if P.get(protocol).kind == "dexgraspbench":
+        c = P.get(protocol).settings(cfg)
         return (sum(s.n for s in P.grasp_and_squeeze(one, c))
                 + sum(P.bench_push(one, c, d, 1.0).n for d in P.DIRECTIONS))
     close = sum(s.n for s in P.closing(one, cfg))
@@ -413,7 +412,7 @@ class Bench:
                     t0 = time.perf_counter()
                     gs = fj.synthesize(self.hand, mesh, gcfg, name)
                     t1 = time.perf_counter()
-                    checked = fj.validate(self.hand, mesh, gs, a.first_protocols, pcfg, need=1)
+                    checked = fj.validate(self.hand, mesh, gs, pcfg, protocols=a.first_protocols, need=1)
                     t2 = time.perf_counter()
                     first = int(checked.order()[0])
                     rows.append({"backend": backend, "object": name, "first": i == 0, "synthesis": t1 - t0,

@@ -26,6 +26,7 @@ from ffcgs_jax.geometry.config import SDFConfig
 from ffcgs_jax.hand import kinematics as K
 from ffcgs_jax.synthesis import grasp
 from ffcgs_jax.kernels import quality
+from ffcgs_jax.runtime import compiled
 from ffcgs_jax.synthesis.config import GraspConfig, OptimConfig
 from ffcgs_jax.synthesis.energy import make_target
 
@@ -86,7 +87,7 @@ def main():
     for variant in args.variants.split(","):
         quality.q_distance_warm, K.mjx_kinematics = real_lp, real_fk
         patch(variant, hand)
-        grasp.clear_compiled()  # JAX's caches too: traced jaxprs do not see the patched module functions
+        compiled.clear_compiled()  # JAX's caches too: traced jaxprs do not see the patched module functions
         row = time_synthesis(hand, target, GraspConfig(n=args.n, devices=1, optim=OptimConfig(iters=args.iters)),
                              args.repeats)
         kernels = step_kernels(grasp.compiled_executables()[0].as_text(), args.iters)

@@ -90,7 +90,7 @@ def main():
                     "from another version of the package: PYTHONPATH=OLD_CHECKOUT python bench/...)")
     ap.add_argument("--running", action="store_true", help="print the tables after every object as well")
     args = ap.parse_args()
-    base = PhysicsConfig(friction=args.friction)
+    base = PhysicsConfig(sim_friction=args.friction)
     runs = {text: parse_run(text, base) for text in args.runs}
     spec = hand_spec.load_spec("svh")
     threads = base.workers or os.cpu_count() or 1

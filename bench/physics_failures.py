@@ -59,7 +59,7 @@ def main():
     args = ap.parse_args()
     rows = json.loads(Path(args.physics).read_text())
     spec = hand_spec.load_spec("svh")
-    cfg = PhysicsConfig(friction=0.6)
+    cfg = PhysicsConfig(sim_friction=0.6)
     strips = []
     for protocol, reason, label in KINDS:
         r, i = pick(rows, protocol, reason)

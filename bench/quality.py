@@ -21,7 +21,7 @@ Per row, over the object set:
   GraspSet has `contact_dist`, the share whose fingertips are all within `--contact-tol` of the surface.
 - medians over the returned grasps (pooled over objects) of E, E_g, E_c (mm) and penetration (mm); and Table-II
   style: per object the mean E, E_g, E_c of the 20 lowest-E of all n sampled poses, median over objects.
-- physics (protocol: `runner.evaluate` with PhysicsConfig(friction=`--friction`, default 0.6) and its other
+- physics (protocol: `runner.evaluate` with PhysicsConfig(sim_friction=`--friction`, default 0.6) and its other
   defaults, lift-shake and six-dir; `--protocols` may add DexGraspBench's `dexgraspbench`, `dexgraspbench-bodex`,
   which fix their own friction, mass and gains, in a column each): every returned grasp in `gs.order()` order
   (best first), at most `--max-grasps-per-object` per object (0 = all). Success shares pooled over the tested
@@ -31,7 +31,7 @@ Per row, over the object set:
 - seconds per object: median wall time of `synthesize` without each row's first (compiling) call, its device part
   (`synthesis_s`), the physics time, and the compile time apart (a load from JAX's persistent cache, as the CLI
   uses, when an earlier run compiled the same executable: `--no-jax-cache` to compile).
-Figures from fields a GraspSet may lack (force_closure, contact_dist) print as "-"; n_contacts and score go to
+Figures from fields a GraspSet may lack (force_closure, contact_dist) print as "-"; n_contacts goes to
 the JSON when present (null when not).
 """
 
@@ -168,7 +168,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
         if out and not Path(out).resolve().parent.is_dir():  # found out now, not after an hour of synthesis
             ap.error(f"{flag}: no such folder: {Path(out).parent}")
     try:
-        PhysicsConfig(friction=args.friction, backend=args.backend).check()
+        PhysicsConfig(sim_friction=args.friction, backend=args.backend).check()
     except FfcgsError as e:
         ap.error(str(e))
     return args
@@ -237,7 +237,7 @@ def run_job(hand, mesh, name: str, cfg: GraspConfig, args, save: Path | None = N
     if len(tested):
         t1 = time.perf_counter()
         res = runner.evaluate(hand.spec, mesh, gs["wrist_pose"][tested], gs["q"][tested],
-                              PhysicsConfig(friction=args.friction, backend=args.backend), args.protocol_list,
+                              PhysicsConfig(sim_friction=args.friction, backend=args.backend), args.protocol_list,
                               squeeze_dir=gs["squeeze_dir"][tested])
         physics_s = time.perf_counter() - t1
         physics = {k: np.asarray(v).tolist() for k, v in res.items()}
@@ -246,7 +246,7 @@ def run_job(hand, mesh, name: str, cfg: GraspConfig, args, save: Path | None = N
     return {
         "n": int(len(valid)), "valid": valid.tolist(), "order": order.tolist(), "tested": tested.tolist(),
         **{k: np.asarray(a[k], float).tolist() for k in ("E", "E_g", "E_c", "penetration", "epsilon")},
-        **{k: _opt(a, k) for k in ("force_closure", "n_contacts", "contact_dist", "score", "E_m", "support_min",
+        **{k: _opt(a, k) for k in ("force_closure", "n_contacts", "contact_dist", "E_m", "support_min",
                                    "E_q", "table_penetration")},
         "physics": physics, "wall_s": wall, "synthesis_s": float(a["synthesis_s"]),
         "compile_s": float(a["compile_s"]), "physics_s": physics_s,

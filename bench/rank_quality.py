@@ -9,7 +9,7 @@ the grasps), computes the success predictor's `pred_success` on each object's SD
 and SDF settings as the synthesis), and reports per object set, over the returned (valid) grasps, without physics
 in the loop:
     - top-1 / top-5: the object's first (any of its first five) returned grasps pass lift-shake and six-dir (and,
-      apart, dexgraspbench), ordered by the predictor, by E (the analytic order), by `score`, and a random order's
+      apart, dexgraspbench), ordered by the predictor, by E (the analytic order), and a random order's
       expectation; an object without a returned grasp counts as a failure;
     - within-object AUC (mean over objects with both outcomes) and pooled AUC of the predictor and of each
       analytic figure (DexGraspBench-style: each metric's ROC AUC against the simulated outcome, sign chosen so
@@ -30,8 +30,7 @@ from ffcgs_jax.core import files  # noqa: E402
 from ffcgs_jax.evaluation import rank_metrics as M  # noqa: E402
 
 BOTH = ("lift_shake", "six_dir")
-ANALYTIC = {"epsilon": 1, "E": -1, "E_g": -1, "E_c": -1, "E_q": -1, "E_m": -1, "support_min": 1, "penetration": -1,
-            "score": 1}
+ANALYTIC = {"epsilon": 1, "E": -1, "E_g": -1, "E_c": -1, "E_q": -1, "E_m": -1, "support_min": 1, "penetration": -1}
 
 
 def group_of(name: str, ycb: Path | None) -> str:
@@ -113,7 +112,7 @@ def report(objs: list[dict], name: str) -> tuple[list[str], dict]:
         rows = object_rows(objs, labels)
         rand1 = float(M.random_top1(rows["y"], rows["gid"]).sum()) if len(rows["y"]) else 0.0
         cells = []
-        for key, label in (("pred", "predicted"), ("E", "E"), ("score", "score")):
+        for key, label in (("pred", "predicted"), ("E", "E")):
             t1, t5 = first_k(objs, rows, key, 1), first_k(objs, rows, key, 5)
             w, nw = M.within_auc(rows[key], rows["y"], rows["gid"])
             fig[f"{tag}:{key}"] = {"top1": t1, "top5": t5, "within_auc": w, "pooled_auc": M.auc(rows[key], rows["y"])}
@@ -140,9 +139,9 @@ def main(argv=None) -> int:
     objs = load(Path(args.folder), ycb, args.evaluator)
     sets = {"scoreboard (ycb-test, builtin, procedural)": [o for o in objs if o["group"] != "complex"],
             "complex (seed 2000)": [o for o in objs if o["group"] == "complex"], "all": objs}
-    print("| objects | passes | n | predicted: top-1 / top-5 / within-AUC | E | score | random top-1 (expected) | "
+    print("| objects | passes | n | predicted: top-1 / top-5 / within-AUC | E | random top-1 (expected) | "
           "objects with any passing |")
-    print("|---|---|---|---|---|---|---|---|")
+    print("|---|---|---|---|---|---|---|")
     out = {}
     for name, sel in sets.items():
         if not sel:

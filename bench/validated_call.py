@@ -71,7 +71,7 @@ def one(hand, name: str, mesh, cfg, pcfg: PhysicsConfig, protocols, need: int = 
     t1 = time.perf_counter()
     parts = convex.decompose(mesh, pcfg)
     t2 = time.perf_counter()
-    checked = fj.validate(hand, mesh, gs, protocols, pcfg, need=need)
+    checked = fj.validate(hand, mesh, gs, pcfg, protocols=protocols, need=need)
     t3 = time.perf_counter()
     first = int(checked.order()[0])
     compile_s = float(gs["compile_s"])  # a face count the process had no executable for (issue 32): apart
@@ -95,7 +95,7 @@ def run(args) -> dict:
 
     hand = fj.load_hand("svh")
     cfg = fj.GraspConfig(n=args.n)
-    pcfg = PhysicsConfig(friction=args.friction, backend=args.backend)
+    pcfg = PhysicsConfig(sim_friction=args.friction, backend=args.backend)
     objs = objects(args)
     rows = []
     with tempfile.TemporaryDirectory() as cache, _env("FFCGS_CACHE_DIR", cache):

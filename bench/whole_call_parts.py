@@ -6,7 +6,7 @@ Each stage runs as `synthesize` runs it, then waits for the device (`block_until
 own; the waits add a few launches of latency that the real call overlaps, so the sum is an upper bound of the call.
 Stages: the SDF (built anew, or looked up in the cache), the target (extent and cell table), the device part's
 lookup and run, the triangle table (built anew, or cached), the evaluation's lookup and run, the copy back and the
-host-side finish (validity, squeeze directions, score). `synthesize` builds the triangle table while the device
+host-side finish (validity, squeeze directions, predictions). `synthesize` builds the triangle table while the device
 part runs, so on a GPU it costs the call nothing (a CPU backend shares the cores). Medians of `repeats` warm calls, milliseconds.
 """
 

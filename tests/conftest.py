@@ -37,3 +37,12 @@ def _release_executables():
         import ffcgs_jax
 
         ffcgs_jax.clear_compiled()
+
+
+@pytest.fixture(scope="session")
+def svh():
+    """The SVH, loaded once per test process: a `Hand` holds no state a test can change (frozen arrays, an MJX
+    model), so the tests share one."""
+    from ffcgs_jax.hand.kinematics import load_hand
+
+    return load_hand("svh")

@@ -93,7 +93,7 @@ def test_every_command_line_of_the_guide_parses():
     """The flags of every command in every bash block, tested or not, exist (nothing runs: parsing only)."""
     from ffcgs_jax.cli.main import parse
     from ffcgs_jax.core.config import with_overrides
-    from ffcgs_jax.learning.config import TrainConfig
+    from ffcgs_jax.training.config import TrainConfig
     from train.sampler import split_args
 
     lines = [args for _, lang, body in blocks() if lang == "bash" for args in commands(body)]

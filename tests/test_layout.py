@@ -113,7 +113,7 @@ def test_configs_live_beside_their_code():
     shared ffcgs_jax/core/config.py holds only helpers."""
     top = importlib.import_module("ffcgs_jax.core.config")
     assert not [n for n, v in vars(top).items() if dataclasses.is_dataclass(v) and v.__module__ == top.__name__]
-    for sub in ("geometry", "synthesis", "physics", "dataset", "learning", "viz"):
+    for sub in ("geometry", "synthesis", "physics", "dataset", "learning", "training", "viz"):
         mod = importlib.import_module(f"ffcgs_jax.{sub}.config")
         assert any(dataclasses.is_dataclass(v) and v.__module__ == mod.__name__ for v in vars(mod).values()), sub
 

@@ -1,6 +1,7 @@
 """README's Python API section runs as written, using only the public API."""
 
 import ast
+import json
 import os
 import re
 import subprocess
@@ -52,3 +53,17 @@ def test_readme_api_runs_as_written(tmp_path):
     valid = re.search(r"^(\d+) valid of 8", r.stdout, re.M)
     assert valid and int(valid.group(1)) >= 1, r.stdout
     assert re.search(r"^six-dir success: \[\s*(True|False)\s+(True|False)\]$", r.stdout, re.M), r.stdout
+
+
+def test_readme_and_notebooks_name_only_public_names_in_their_prose():
+    """Outside the code blocks too: every `fj.NAME` is public, and no `ffcgs_jax.sub.module` path is offered to a
+    user (a file path such as `ffcgs_jax/physics/` says where code lives, not what to call)."""
+    texts = {"README.md": (REPO / "README.md").read_text()}
+    for nb in sorted((REPO / "notebooks").glob("*.ipynb")):
+        cells = json.loads(nb.read_text())["cells"]
+        texts[nb.name] = "\n".join("".join(c["source"]) for c in cells)
+    for name, text in texts.items():
+        used = set(re.findall(r"\bfj\.([A-Za-z_]\w*)", text))
+        assert used <= set(ffcgs_jax.__all__), (name, used - set(ffcgs_jax.__all__))
+        dotted = sorted(set(re.findall(r"\bffcgs_jax\.[a-z_]+\.[A-Za-z_.]+", text)))
+        assert dotted == [], (name, dotted)

@@ -95,11 +95,12 @@ class BenchCmd:
     json: str | None = None
 
     def check(self) -> None:
-        from ffcgs_jax.synthesis.config import LP_SOLVERS
+        from ffcgs_jax.core.config import check_choice
+        from ffcgs_jax.synthesis.config import LP_SOLVERS, SAMPLERS
 
         if self.backend not in ("default", "cpu", "gpu"):
             raise FfcgsError(f"--backend must be default, cpu or gpu, got {self.backend!r}")
-        GraspConfig(sampler=self.sampler).check()
+        check_choice("sampler", self.sampler, ("auto", *SAMPLERS))
         for s in self.lp_solvers:
             if s not in LP_SOLVERS:
                 raise FfcgsError(f"unknown LP solver {s!r}; solvers: {', '.join(LP_SOLVERS)}")
@@ -199,7 +200,7 @@ class GraspCmd:
         need: with `--validate`: 0 simulates every valid grasp with every protocol; k > 0 stops once k grasps
             pass (candidates in the analytic order, a chunk at a time, six-dir first), for the best grasp sooner.
         grasp: synthesis settings (flags without prefix: --n, --sampler, --iters, --res, --d0, ...).
-        physics: physics settings for `--validate` (flags without prefix: --backend, --friction, ...).
+        physics: physics settings for `--validate` (flags without prefix: --backend, --sim-friction, ...).
     """
 
     object: tyro.conf.Positional[Annotated[tuple[str, ...], tyro.conf.arg(metavar="[OBJECT ...]")]] = ()
@@ -324,16 +325,16 @@ def run_grasp(cmd: GraspCmd) -> int:
     # are returned must not depend on whether a mesh was also given. The true mesh adds the *_true figures.
     gs = synthesize(hand, mesh if cmd.depth is None else fused.grid, cmd.grasp, name, grid=grid, poses=poses)
     if mesh is not None:
-        gs.arrays.update(mesh_io.identity(obj, cmd.grasp.sdf.scale, mesh))
+        gs = gs.with_arrays(**mesh_io.identity(obj, cmd.grasp.sdf.scale, mesh))
     if cmd.depth is not None:
-        gs.arrays.update(sdf_s=np.asarray(depth_s, np.float64), total_s=np.asarray(gs["total_s"] + depth_s))
+        gs = gs.with_arrays(sdf_s=np.asarray(depth_s, np.float64), total_s=np.asarray(gs["total_s"] + depth_s))
     rows += summary_rows(gs)
     if cmd.depth is not None:
-        gs.arrays.update(depth_source=np.array(str(Path(cmd.depth).expanduser().resolve())),
-                         evaluation_surface=np.array("fused"), table_z=np.asarray(fused.table_z, np.float64),
-                         fuse_s=np.asarray(fused.fuse_s, np.float64))
+        gs = gs.with_arrays(depth_source=np.array(str(Path(cmd.depth).expanduser().resolve())),
+                            evaluation_surface=np.array("fused"), table_z=np.asarray(fused.table_z, np.float64),
+                            fuse_s=np.asarray(fused.fuse_s, np.float64))
         if mesh is not None:
-            gs.arrays.update(check_on_mesh(hand, mesh, gs, grid))
+            gs = gs.with_arrays(**check_on_mesh(hand, mesh, gs, grid))
             rows += true_mesh_rows(gs)
     if cmd.validate:
         gs, physics_rows = _validate(gs, hand, mesh, cmd)
@@ -366,8 +367,7 @@ def _validate(gs, hand, mesh, cmd: GraspCmd):
     from ffcgs_jax.physics import validate as physics_validate
 
     protocols = _protocols(cmd.protocol)
-    gs = dataclasses.replace(gs, arrays=_physics_check(hand.spec, mesh, gs.arrays, gs["valid"], cmd.physics,
-                                                       protocols, cmd.need))
+    gs = gs.with_arrays(_physics_check(hand.spec, mesh, gs.arrays, gs["valid"], cmd.physics, protocols, cmd.need))
     return gs, physics_validate.summary_rows(gs, protocols)
 
 
@@ -416,7 +416,7 @@ class EvalCmd:
         hand: built-in hand name or a hand-spec TOML.
         scale: multiplies the object's coordinates (0.001 for millimetre meshes); default the scale the grasp file
             records (1 for files without one).
-        physics: simulator and success-rule settings (flags without prefix: --backend, --friction, --mass, ...).
+        physics: simulator and success-rule settings (flags without prefix: --backend, --sim-friction, --mass, ...).
     """
 
     grasps: tyro.conf.Positional[str] = tyro.MISSING

@@ -73,7 +73,7 @@ def run_render_depth(cmd: RenderDepthCmd) -> None:
     seconds = time.perf_counter() - t0
     written = frames if cmd.masks else frames._replace(mask=None)
     with files.write_folder(cmd.out, "ffcgs render-depth") as tmp:  # swapped in whole: no stale frame survives
-        depth_io.write_frames(tmp, written)
+        depth_io.write_frames(written, tmp)
     files.announce(f"wrote {cmd.out}: {cmd.views} depth frames of {cmd.object}, {cmd.width}x{cmd.height}, "
           f"{'noisy' if cmd.noise else 'exact'}, {'with' if cmd.masks else 'without'} masks, table at z = "
           f"{float(mesh.bounds[0, 2]):.4f} m (rendered in {seconds:.1f} s)")

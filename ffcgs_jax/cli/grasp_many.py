@@ -70,7 +70,7 @@ def run(cmd, validate: Callable) -> int:
                     rows[r.name] = _row(None, r.seconds, "failed")
                 else:
                     identity = mesh_io.identity(r.source, cmd.grasp.sdf.scale, r.mesh)
-                    gs.arrays.update(identity, run_key=np.array(run_key(settings, str(identity["object_sha256"]))))
+                    gs = gs.with_arrays(**identity, run_key=np.array(run_key(settings, str(identity["object_sha256"]))))
                     out.mkdir(parents=True, exist_ok=True)
                     files.add_to_manifest(out, f"{r.name}.npz", WRITTEN_BY)
                     grasp_io.save_npz(gs, out / f"{r.name}.npz")

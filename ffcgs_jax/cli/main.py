@@ -12,19 +12,17 @@ import textwrap
 import threading
 import warnings
 
-from ffcgs_jax.core import files
-from ffcgs_jax.cli import smoke
-from ffcgs_jax.cli.commands import COMMANDS, PLANS
-from ffcgs_jax.core.config import with_overrides
-from ffcgs_jax.core.errors import FfcgsError
+# Only the standard library above this line: `main` sets its Ctrl-C handler before anything slow is imported, so an
+# interrupt in the first second is the same one line as later (`_package` brings in the rest).
 
 # Composite configs whose nested sections share field names (seed, filters) keep their prefixes on the command
-# line: `ffcgs dataset build --per-object 200 --planner.population 4096 --physics.friction 0.6`.
+# line: `ffcgs dataset build --per-object 200 --planner.population 4096 --physics.sim-friction 0.6`.
 _PREFIXED = {"dataset build"}
 
 
 def _usage() -> str:
     from ffcgs_jax.cli import train_command
+    from ffcgs_jax.cli.commands import COMMANDS
 
     lines = ["usage: ffcgs COMMAND [--config FILE.toml] [options]", "", "commands:"]
     docs = {name: cls.__doc__ for name, (cls, _) in COMMANDS.items()} | {"train": train_command.__doc__}
@@ -67,6 +65,10 @@ def parse(argv: list[str]):
 
 def parse_command(argv: list[str]):
     """Parse `ffcgs COMMAND ...` into (command name, run function, command dataclass)."""
+    from ffcgs_jax.cli.commands import COMMANDS
+    from ffcgs_jax.core.config import with_overrides
+    from ffcgs_jax.core.errors import FfcgsError
+
     if not argv or argv[0] in ("-h", "--help"):
         print(_usage())
         raise SystemExit(0 if argv else 2)
@@ -132,7 +134,9 @@ def _interrupted(signum, frame) -> None:
     # Exit at once: a KeyboardInterrupt raised wherever Python happens to be can land in a garbage-collection
     # callback (and be swallowed), or wait for a compilation to finish. Every file is written through
     # `files.atomic_path`, so removing the temporary files of writes in progress leaves no partial output.
-    files.discard_temporaries()
+    files = sys.modules.get("ffcgs_jax.core.files")
+    if files is not None:  # not loaded yet: no file written yet
+        files.discard_temporaries()
     os.write(2, b"\nffcgs: interrupted\n")  # a new line: a progress bar may be half-way through its own
     os._exit(130)
 
@@ -143,10 +147,10 @@ def main(argv: list[str] | None = None) -> int:
         from ffcgs_jax.cli import train_command
 
         return train_command.main(argv[1:])
-    warnings.showwarning = _one_line_warning  # a user needs the message, not our source line
     previous = signal.signal(signal.SIGINT, _interrupted) if threading.current_thread() is threading.main_thread() \
         else None
     try:
+        warnings.showwarning = _one_line_warning  # a user needs the message, not our source line
         return _run(argv)
     finally:
         if previous is not None:
@@ -154,6 +158,10 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def _run(argv: list[str]) -> int:
+    from ffcgs_jax.cli import smoke
+    from ffcgs_jax.cli.commands import PLANS
+    from ffcgs_jax.core.errors import FfcgsError
+
     try:
         name, fn, cmd = parse_command(argv)
         cmd = smoke.scaled(name, cmd)  # FFCGS_SMOKE: README's commands as written, in seconds (CI)

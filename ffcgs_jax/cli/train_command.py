@@ -26,7 +26,7 @@ from ffcgs_jax.core import files
 from ffcgs_jax.cli import smoke
 from ffcgs_jax.core.config import coerce, check_all, split_config_arg, with_overrides
 from ffcgs_jax.core.errors import FfcgsError
-from ffcgs_jax.learning.config import EvaluatorTrainConfig, TrainConfig
+from ffcgs_jax.training.config import EvaluatorTrainConfig, TrainConfig
 
 MODELS = {"sampler": TrainConfig, "evaluator": EvaluatorTrainConfig}
 
@@ -132,7 +132,7 @@ def run_cv_evaluator(cfg: EvaluatorTrainConfig) -> dict:
     """Every fold of the predictor's cross-validation in OUT/fold<k>/, then OUT/cv.md; the mean summary."""
     from ffcgs_jax.hand import kinematics as K
     from ffcgs_jax.training import evaluator_data, evaluator_train
-    from ffcgs_jax.training.train import dataset_hand
+    from ffcgs_jax.training.run import dataset_hand
 
     data = evaluator_data.load(cfg.data.path, K.load_hand(dataset_hand(cfg.data.path, cfg.hand)))
     rows = []

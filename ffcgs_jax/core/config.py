@@ -1,18 +1,24 @@
 """What every config shares: TOML loading, dict-to-dataclass with unknown keys refused, range checks.
 
 Each subpackage owns its configs (`geometry.config`, `synthesis.config`, `physics.config`, `dataset.config`,
-`learning.config`, `viz.config`); every command's options are one nested frozen dataclass of them. `load(cls,
+`learning.config`, `training.config`, `viz.config`); every command's options are one nested frozen dataclass of them. `load(cls,
 path)` reads a TOML file into it; the CLI then lets any field be overridden (`--sdf.res 64`). Frozen dataclasses
 hash, so a config can be a static jit argument.
+
+A renamed setting keeps its old name readable: the dataclass lists `RENAMED: ClassVar[dict[str, str]]` (old name ->
+new), and TOML files, saved configs and CLI flags under the old name still load, with one line naming the new key.
+A choice among names is a `typing.Literal`; `from_dict`, `check_choice` and the CLI's parser all read its values.
 """
 
 import contextlib
 import dataclasses
+import functools
 import io
 import math
 import sys
 import tomllib
 import typing
+import warnings
 from pathlib import Path
 from typing import Any, TypeVar
 
@@ -34,18 +40,80 @@ def check_integer(name: str, value: Any, lo: int, hi: int) -> None:
         raise FfcgsError(f"{name} must be an integer in [{lo}, {hi}], got {value!r}")
 
 
+def check_choice(name: str, value: Any, choices: Any) -> None:
+    """Refuse `value` outside `choices` (a `typing.Literal` or a tuple of names), listing the valid ones."""
+    valid = typing.get_args(choices) or tuple(choices)
+    if not isinstance(value, str) or value not in valid:
+        raise FfcgsError(f"unknown {name} {value!r}; choices: {', '.join(map(str, valid))}")
+
+
+def renamed(cls: type) -> dict[str, str]:
+    """A config class's old field names -> their new names (`RENAMED`), {} for one never renamed."""
+    return dict(getattr(cls, "RENAMED", {}))
+
+
+def _say_renamed(old: str, new: str) -> None:
+    warnings.warn(f"{old} is now called {new}; the old name still reads, but write {new}", FutureWarning,
+                  stacklevel=3)
+
+
+def keeps_old_names(cls: type[T]) -> type[T]:
+    """Class decorator for a config dataclass with `RENAMED` fields: a Python keyword under the old name
+    (`PhysicsConfig(friction=0.5)`, `dataclasses.replace(cfg, friction=0.5)`) sets the new field, with one line
+    naming it, as a TOML key or a flag does."""
+    init = cls.__init__
+
+    @functools.wraps(init)
+    def __init__(self, *args, **kwargs):
+        for old, new in renamed(cls).items():
+            if old in kwargs:
+                if new in kwargs:  # also `dataclasses.replace(cfg, old=...)`, which passes every field by name
+                    raise FfcgsError(f"{cls.__name__}: {old} is now called {new}; give {new} alone")
+                kwargs[new] = kwargs.pop(old)
+                _say_renamed(f"{cls.__name__}({old}=...)", f"{cls.__name__}({new}=...)")
+        init(self, *args, **kwargs)
+
+    cls.__init__ = __init__
+    return cls
+
+
+def upgrade_keys(cls: type, data: Any, where: str = "", say: bool = False) -> Any:
+    """`data` (a config's nested dict, as a file stored it) with every old key of `cls` and its sections under its
+    new name; anything not a config key is left as it is. `say`: one line per renamed key."""
+    if not isinstance(data, dict) or not dataclasses.is_dataclass(cls):
+        return data
+    out = dict(data)
+    for old, new in renamed(cls).items():
+        if old in out:
+            if new in out:
+                raise FfcgsError(f"config keys {where}{old} and {where}{new} are both set: {old} is the old name of "
+                                 f"{new}; keep {new} alone")
+            out[new] = out.pop(old)
+            if say:
+                _say_renamed(where + old, where + new)
+    hints = typing.get_type_hints(cls)
+    for f in dataclasses.fields(cls):
+        if f.name in out and dataclasses.is_dataclass(hints[f.name]):
+            out[f.name] = upgrade_keys(hints[f.name], out[f.name], f"{where}{f.name}.", say)
+    return out
+
+
 def is_finite(value: Any) -> bool:
     return isinstance(value, (int, float)) and math.isfinite(value)
 
 
-def from_dict(cls: type[T], data: Any, where: str = "", base: Any = None) -> T:
+def from_dict(cls: type[T], data: Any, where: str = "", base: Any = None, say_renamed: bool = True) -> T:
     """Build dataclass `cls` from a nested dict, naming any unknown key and listing the valid ones.
+
+    A key under its old name (`RENAMED`) reads as its new one, with one line saying so unless `say_renamed` is
+    False (a file the program saved, not one the user writes).
 
     Keys a table leaves out keep their defaults, and a nested table changes only the keys it names: its other keys
     keep the enclosing config's default for that section (`base`), not the section class's own defaults (a
     dataset's `[grasp]` table with only `n` keeps the dataset's geometric sampler)."""
     if not isinstance(data, dict):
         raise FfcgsError(f"config section {where.rstrip('.') or '<top>'} must be a table, got {type(data).__name__}")
+    data = upgrade_keys(cls, data, where, say_renamed)
     fields = {f.name: f for f in dataclasses.fields(cls)}
     hints = typing.get_type_hints(cls)
     # keys as printable text: a TOML quoted key may hold a newline (the message must stay one line), and a dict
@@ -61,7 +129,7 @@ def from_dict(cls: type[T], data: Any, where: str = "", base: Any = None) -> T:
         hint = hints[name]
         if dataclasses.is_dataclass(hint):
             inner = getattr(base, name) if base is not None else _default(fields[name])
-            kwargs[name] = from_dict(hint, value, f"{where}{name}.", inner)
+            kwargs[name] = from_dict(hint, value, f"{where}{name}.", inner, say_renamed)
         else:
             kwargs[name] = coerce(hint, value, where + name)
     obj = cls(**kwargs) if base is None else dataclasses.replace(base, **kwargs)
@@ -77,6 +145,9 @@ def _default(f: dataclasses.Field) -> Any:
 
 def coerce(hint: Any, value: Any, name: str) -> Any:
     args = typing.get_args(hint)
+    if typing.get_origin(hint) is typing.Literal:
+        check_choice(f"config key {name}", value, hint)
+        return value
     if type(None) in args and len(args) == 2:  # `X | None`: None stays, anything else must be an X
         return None if value is None else coerce(next(a for a in args if a is not type(None)), value, name)
     if hint is float and isinstance(value, int) and not isinstance(value, bool):
@@ -180,6 +251,16 @@ def leaf_paths(cls: type) -> list[str]:
     return out
 
 
+def renamed_paths(cls: type) -> dict[str, str]:
+    """Old dotted paths of renamed settings -> their new paths (`physics.friction` -> `physics.sim_friction`)."""
+    hints = typing.get_type_hints(cls)
+    out = {old: new for old, new in renamed(cls).items()}
+    for f in dataclasses.fields(cls):
+        if dataclasses.is_dataclass(hints[f.name]):
+            out |= {f"{f.name}.{o}": f"{f.name}.{n}" for o, n in renamed_paths(hints[f.name]).items()}
+    return out
+
+
 def respell_flags(cls: type, argv: list[str], keep_prefixes: bool) -> list[str]:
     """Both spellings of a nested setting on every command: `--optim.iters 50` where flags are bare (`ffcgs grasp`),
     and `--population 64` where they keep their section (`ffcgs dataset build`) when only one section has that
@@ -188,6 +269,10 @@ def respell_flags(cls: type, argv: list[str], keep_prefixes: bool) -> list[str]:
     by_leaf: dict[str, list[str]] = {}
     for p in paths:
         by_leaf.setdefault(p.rsplit(".", 1)[-1], []).append(p)
+    old_paths = {o.replace("_", "-"): n.replace("_", "-") for o, n in renamed_paths(cls).items()}
+    old_by_leaf: dict[str, list[str]] = {}
+    for o in old_paths:
+        old_by_leaf.setdefault(o.rsplit(".", 1)[-1], []).append(o)
     out = []
     for a in argv:
         flag, eq, value = a.partition("=")
@@ -195,6 +280,13 @@ def respell_flags(cls: type, argv: list[str], keep_prefixes: bool) -> list[str]:
             out.append(a)
             continue
         name = flag[2:].replace("_", "-")
+        old = name if name in old_paths else None
+        if old is None and name not in by_leaf and len(old_by_leaf.get(name, ())) == 1:
+            old = old_by_leaf[name][0]
+        if old is not None:  # a renamed setting's old flag: read as the new one, in the spelling it came in
+            name = old_paths[old] if "." in name else old_paths[old].rsplit(".", 1)[-1]
+            _say_renamed(flag, "--" + name)
+            flag = "--" + name
         if not keep_prefixes and "." in name and name in paths and len(by_leaf[name.rsplit(".", 1)[-1]]) == 1:
             flag = "--" + name.rsplit(".", 1)[-1]
         elif keep_prefixes and "." not in name and len(by_leaf.get(name, ())) == 1 and "." in by_leaf[name][0]:

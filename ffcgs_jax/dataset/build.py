@@ -46,6 +46,7 @@ from ffcgs_jax.dataset import mcap_io as dataset_io
 from ffcgs_jax.dataset.config import DatasetConfig
 from ffcgs_jax.dataset.objects import Source, object_seed, objects_sha256, sources
 from ffcgs_jax.core.errors import FfcgsError
+from ffcgs_jax.runtime import compiled
 
 
 def rotation(cfg: DatasetConfig, name: str, index: int) -> np.ndarray:
@@ -201,6 +202,9 @@ def _hand(name: str):
     from ffcgs_jax.hand import spec as hand_spec
 
     return K.load_hand(name), hand_spec.load_spec(name)
+
+
+compiled.register("dataset.build hands", _hand)
 
 
 def build_object(cfg: DatasetConfig, src: Source, parts_dir: Path, progress=None) -> dict | None:

@@ -1,11 +1,13 @@
 """`ffcgs dataset build`'s settings: the annotation planner's and the build's."""
 
 import dataclasses
+import typing
+from typing import Literal
 
-from ffcgs_jax.core.config import SEED_MAX, check_integer, is_finite
+from ffcgs_jax.core.config import SEED_MAX, check_choice, check_integer, is_finite
 from ffcgs_jax.core.errors import FfcgsError
 from ffcgs_jax.physics.config import ALL_PROTOCOLS, PhysicsConfig
-from ffcgs_jax.synthesis.config import SAMPLERS, GraspConfig
+from ffcgs_jax.synthesis.config import Sampler, GraspConfig
 
 
 @dataclasses.dataclass(frozen=True)
@@ -55,14 +57,10 @@ class PlannerConfig:
             raise FfcgsError(f"planner.t_end ({self.t_end}) must not exceed planner.t0 ({self.t0}): it cools")
 
 
-SPLITS = ("train", "test", "all")
-
-
-ROTATION_MODES = ("yaw", "so3")
-
-KEEP = ("passing", "all")
-
-ENGINES = ("auto", "plain", "ray")
+Split = Literal["train", "test", "all"]
+RotationMode = Literal["yaw", "so3"]
+Keep = Literal["passing", "all"]
+Engine = Literal["auto", "plain", "ray"]
 
 LABEL_PROTOCOLS = ("lift-shake", "six-dir", "dexgraspbench")
 
@@ -129,10 +127,10 @@ class DatasetConfig:
 
     objects: str = ""
     out: str = "dataset.mcap"
-    split: str = "train"
+    split: Split = "train"
     per_object: int = 200
     rotations: int = 5
-    rotation_mode: str = "yaw"
+    rotation_mode: RotationMode = "yaw"
     seed: int = 0
     procedural: int = 0
     noise_trans: float = 0.005
@@ -140,18 +138,18 @@ class DatasetConfig:
     dedupe_trans: float = 0.005
     dedupe_rot: float = 0.1
     physics_chunk: int = 128
-    physics_test: str = "both"
+    physics_test: Literal["both", "none"] = "both"
     hand: str = "svh"
     shard: str = "0/1"
     annotate: bool = True
-    keep: str = "passing"
-    sampler: str = "planner"
+    keep: Keep = "passing"
+    sampler: Literal["planner", Sampler] = "planner"
     protocols: str = ",".join(LABEL_PROTOCOLS)
     complex: int = 0
     scale_min: float = 1.0
     scale_max: float = 1.0
     allow_test: bool = False
-    engine: str = "auto"
+    engine: Engine = "auto"
     address: str = ""
     task_cpus: int = 4
     cpus: int = 0
@@ -182,12 +180,9 @@ class DatasetConfig:
         return out
 
     def check(self) -> None:
-        if self.keep not in KEEP:
-            raise FfcgsError(f"unknown keep {self.keep!r}; choices: {', '.join(KEEP)}")
-        if self.sampler not in ("planner", *SAMPLERS):
-            raise FfcgsError(f"unknown sampler {self.sampler!r}; samplers: planner, {', '.join(SAMPLERS)}")
-        if self.engine not in ENGINES:
-            raise FfcgsError(f"unknown engine {self.engine!r}; engines: {', '.join(ENGINES)}")
+        hints = typing.get_type_hints(DatasetConfig)
+        for name in ("keep", "sampler", "engine", "split", "rotation_mode", "physics_test"):
+            check_choice(name.replace("_", "-"), getattr(self, name), hints[name])
         if self.keep == "all" and self.physics_test == "none":
             raise FfcgsError("--keep all labels every candidate with the physics test (--protocols); "
                              "--physics-test none applies to --keep passing only")
@@ -203,12 +198,6 @@ class DatasetConfig:
                 raise FfcgsError(f"{name.replace('_', '-')} must be a number in [0.1, 10], got {v!r}")
         if self.scale_min > self.scale_max:
             raise FfcgsError(f"scale-min ({self.scale_min}) must not exceed scale-max ({self.scale_max})")
-        if self.split not in SPLITS:
-            raise FfcgsError(f"unknown split {self.split!r}; splits: {', '.join(SPLITS)}")
-        if self.rotation_mode not in ROTATION_MODES:
-            raise FfcgsError(f"unknown rotation_mode {self.rotation_mode!r}; modes: {', '.join(ROTATION_MODES)}")
-        if self.physics_test not in ("both", "none"):
-            raise FfcgsError(f"physics_test must be 'both' or 'none', got {self.physics_test!r}")
         for name, lo, hi in (("per_object", 1, 1_000_000), ("rotations", 1, 1000), ("procedural", 0, 100_000),
                              ("physics_chunk", 1, 1_000_000), ("seed", 0, SEED_MAX)):
             check_integer(name.replace("_", "-"), getattr(self, name), lo, hi)

@@ -163,7 +163,11 @@ def init_parts(parts_dir: str | Path, config: dict, extra: dict | None = None) -
         except ValueError as e:
             raise FfcgsError(f"{cfg} is not JSON: {e}") from None
         new = json.loads(text)
-        if (old.get("config"), old.get("extra")) != (new["config"], new["extra"]):
+        # a build started before a setting's rename resumes: its stored config read under the current names
+        from ffcgs_jax.core.config import upgrade_keys
+        from ffcgs_jax.dataset.config import DatasetConfig
+
+        if (upgrade_keys(DatasetConfig, old.get("config")), old.get("extra")) != (new["config"], new["extra"]):
             raise FfcgsError(f"{parts_dir} was started with a different config; finish it with the same config "
                              f"or use a new output path")
         return parts_dir

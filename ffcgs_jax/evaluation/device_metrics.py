@@ -40,10 +40,10 @@ from ffcgs_jax.evaluation.epsilon_search import EPS_STARTS, eps_tol, full_rank, 
 from ffcgs_jax.evaluation.metrics import MetricsConfig
 from ffcgs_jax.geometry import mesh_io
 from ffcgs_jax.geometry import sdf as sdf_mod
-from ffcgs_jax.kernels import lp_jax, quality
+from ffcgs_jax.kernels import lp_host, lp_jax, quality
 from ffcgs_jax.kernels.directions import sphere_basis
 from ffcgs_jax.kernels.triangles import closest_offset, dist2, orientation, solid_angles, tri_table
-from ffcgs_jax.runtime import COMPILED_MAX, compile_clock, traced_store
+from ffcgs_jax.runtime import compile_clock, compiled, traced_store
 from ffcgs_jax.core.types import Array, Float
 
 _POINT_CHUNK = 4096  # fingertip points per brute-force pass (bounds the (points, triangles) work in flight)
@@ -75,6 +75,11 @@ class MeshTable(NamedTuple):
 
 
 _TABLES = cachetools.LRUCache(16)
+compiled.register("evaluation.device_metrics triangle tables", _TABLES)
+# the kernels' host-side memos, registered here: `kernels` sits beside `runtime`, and cannot import it
+compiled.register("kernels.quality basis", quality.basis)
+compiled.register("kernels.lp_jax basis", lp_jax.basis_from_key)
+compiled.register("kernels.lp_host solver", lp_host.host_fn)
 
 
 def mesh_table(mesh: trimesh.Trimesh, dtype=None) -> MeshTable:
@@ -254,7 +259,7 @@ def _grasp(closest, normals, signed, q, lower, upper, centre, radius, starts, U,
     touching = jnp.abs(signed) <= cfg.contact_tol
     any_touch = jnp.any(touching)
     src = jnp.where(touching, jnp.arange(len(signed)), jnp.argmax(touching))  # silent tips repeat a touching one
-    W = quality.primitive_wrenches(closest[src], normals[src], centre, radius, cfg.mu, cfg.cone_edges)
+    W = quality.primitive_wrenches(closest[src], normals[src], centre, radius, cfg.lp_friction, cfg.cone_edges)
     e_g, lp_ok, _ = lp_jax.q_distance(W, U)
     spans = full_rank(W)
     eps = search_epsilon(W, starts)
@@ -321,22 +326,20 @@ def _evaluate_sdf(grid, contacts, q, lower, upper, centre, radius, cfg: MetricsC
 _start_jit = jax.jit(_start_mesh, keep_unused=True)  # committed where the contacts are, as a step's state
 _step_jit = jax.jit(_step_mesh)
 _sdf_jit = jax.jit(_evaluate_sdf, static_argnames=("cfg",))
-# the argument signatures run once already, each with the mesh evaluation's last step, compiled ahead (its trace
-# is most of the evaluation's compile time, and `traced_store` keeps it on disk with the compilation cache)
-_COMPILED = cachetools.LRUCache(COMPILED_MAX)  # key -> (executable, call), or None: compiled by a first run
-
-
-def clear_compiled() -> None:
-    """Forget the evaluation's compiled executables: the next evaluation compiles (or loads) them again."""
-    _COMPILED.clear()
+# The argument signatures run once already, each with the mesh evaluation's last step compiled ahead (its trace
+# is most of the evaluation's compile time, and `traced_store` keeps it on disk with the compilation cache), are
+# kept in `runtime.compiled` under STAGE: key -> (executable, call), or None where a first run compiled by jit.
+STAGE = "evaluate_mesh"
 
 
 def _finish(key, cfg: MetricsConfig, *args):
-    if _COMPILED.get(key) is None:
-        lowered, call = traced_store.lower("evaluate_mesh", functools.partial(_finish_mesh, cfg=cfg), args, cfg)
-        _COMPILED[key] = (lowered.compile(), call)
-    compiled, call = _COMPILED[key]
-    return call(compiled, *args)
+    kept = compiled.get(STAGE, key)
+    if kept is None:
+        lowered, call = traced_store.lower(STAGE, functools.partial(_finish_mesh, cfg=cfg), args, cfg)
+        kept = (lowered.compile(), call)
+        compiled.put(STAGE, key, kept)
+    executable, call = kept
+    return call(executable, *args)
 
 
 def _signature(x) -> tuple:
@@ -396,7 +399,7 @@ def compile_evaluate(surface, contacts, q, lower, upper, centre, radius, cfg: Me
             out = _sdf_jit(surface, *args, cfg=cfg)
         return {k: v[:b] for k, v in out.items()} if pad else out
 
-    if key in _COMPILED:
+    if compiled.has(STAGE, key):
         return run, 0.0
     if not compile:
         return None, 0.0
@@ -405,5 +408,6 @@ def compile_evaluate(surface, contacts, q, lower, upper, centre, radius, cfg: Me
         if mesh and len(surface.chunks) == 1:  # a step's own state, as a later mesh's second chunk will pass it
             _step_jit(_step_jit(_start_jit(args[0]), surface.chunks[0], args[0], surface.centre), surface.chunks[0],
                       args[0], surface.centre)
-    _COMPILED.setdefault(key, None)
+    if not compiled.has(STAGE, key):
+        compiled.put(STAGE, key, None)
     return (lambda: first), seconds[0]

@@ -19,6 +19,7 @@ Host only: no jax import, and nothing here is traced.
 
 import dataclasses
 import math
+from typing import ClassVar
 
 import numpy as np
 import scipy.optimize
@@ -27,6 +28,7 @@ import scipy.stats
 import trimesh
 from jaxtyping import Float
 
+from ffcgs_jax.core.config import keeps_old_names
 from ffcgs_jax.core.errors import FfcgsError
 from ffcgs_jax.kernels.directions import N_FIXED, sphere_basis
 
@@ -36,21 +38,26 @@ EDGE_TOL = 1e-9  # barycentric coordinate under which a closest point lies on a 
 SCALARS = ("epsilon", "E_g", "E", "E_c", "E_c_cm", "E_q", "joint_limit_use", "penetration")  # (B,) keys of evaluate
 
 
+@keeps_old_names
 @dataclasses.dataclass(frozen=True)
 class MetricsConfig:
-    """Settings of the evaluation metrics.
+    """Settings of the evaluation metrics. The pipeline derives them from the synthesis's settings
+    (`from_energy`), which it checks before compiling anything; `check` guards a config built here by hand.
 
     Attributes:
-        mu: friction coefficient of the linearised cone (paper: 0.2); >= 0.
+        lp_friction: friction coefficient of the linearised cone (paper's mu: 0.2); >= 0. Formerly `mu`.
         cone_edges: m, edges of the polyhedral friction cone (eq. 7); >= 3.
-        d0: E_c offset of eq. (12) in metres: 0 in simulation, 0.005 for the real-robot setting; >= 0.
+        d0: E_c offset of eq. (12) in metres: 0 in simulation, 0.005 for the real-robot setting; >= 0 (a negative
+            d0 would score fingertips hovering off the surface as in contact; `synthesis.config.D0_RANGE`).
         a_c, a_q: weights of E_c and E_q in E (eq. 5; paper: 5 and 0.5); >= 0.
         basis_size: K, directions u_k on the 6-D unit sphere for the Q-distance LP; >= 12.
         contact_tol: a fingertip counts as a contact only when its distance to the mesh is at most this (metres):
             ε, force closure and E_g use only those. 2 mm, about the SDF grid's own error at 32^3.
     """
 
-    mu: float = 0.2
+    RENAMED: ClassVar[dict[str, str]] = {"mu": "lp_friction"}
+
+    lp_friction: float = 0.2
     cone_edges: int = 8
     d0: float = 0.0
     a_c: float = 5.0
@@ -58,9 +65,17 @@ class MetricsConfig:
     basis_size: int = 64
     contact_tol: float = 0.002
 
+    @classmethod
+    def from_energy(cls, energy, contact_tol: float) -> "MetricsConfig":
+        """The evaluation's settings from the synthesis's `EnergyConfig` and `GraspConfig.contact_tol`: every other
+        field is the energy field of its name (friction, cone, offset, weights, basis), so an energy setting is never
+        evaluated under another value, and its range is checked once, where the user sets it."""
+        names = {f.name for f in dataclasses.fields(cls)} - {"contact_tol"}
+        return cls(**{name: getattr(energy, name) for name in names}, contact_tol=contact_tol)
+
     def check(self) -> None:
         """Raise `FfcgsError` naming the first out-of-range field."""
-        for name in ("mu", "d0", "a_c", "a_q", "contact_tol"):
+        for name in ("lp_friction", "d0", "a_c", "a_q", "contact_tol"):
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v < 0:
                 raise FfcgsError(f"metrics.{name} must be a finite number >= 0, got {v!r}")
@@ -431,7 +446,8 @@ def evaluate(
         if not touching[g].any():
             eps[g], e_g[g] = 0.0, np.nan
             continue
-        w = primitive_wrenches(closest[g][touching[g]], normals[g][touching[g]], o, float(r), cfg.mu, cfg.cone_edges)
+        w = primitive_wrenches(closest[g][touching[g]], normals[g][touching[g]], o, float(r), cfg.lp_friction,
+                               cfg.cone_edges)
         eps[g] = epsilon_q1(w)
         e_g[g] = q_distance_reference(w, basis)
     out = energies(signed, qq, lo, hi, np.nan_to_num(e_g), cfg)

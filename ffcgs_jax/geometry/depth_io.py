@@ -347,13 +347,22 @@ def load_frames(path: str | pathlib.Path) -> Frames:
 # ----------------------------------------------------------------------------------------------------------------
 
 
-def write_frames(folder: str | pathlib.Path, frames: Frames, depth_scale: float = 0.001) -> pathlib.Path:
+def save_frames(frames, folder, depth_scale: float = 0.001) -> pathlib.Path:
+    """`fj.save_frames`: `write_frames`, with one line for the order the public API had before (folder first)."""
+    if isinstance(frames, (str, pathlib.Path)) and isinstance(folder, Frames):
+        raise FfcgsError("save_frames(frames, folder): the frames come first, then the folder (the order changed "
+                         "to match save_grasps(gs, path))")
+    return write_frames(frames, folder, depth_scale)
+
+
+def write_frames(frames: Frames, folder: str | pathlib.Path, depth_scale: float = 0.001) -> pathlib.Path:
     """Write `frames` as a depth folder: <stem>.png (16-bit, value = round(depth / depth_scale)), <stem>_mask.png
     (8-bit, 255 = object) when there are masks, camera.json and poses.json; each file atomically.
 
     Args:
+        frames: the frames; K must have no skew (camera.json has none). What is written comes first, where it goes
+            second, as in `save_grasps(gs, path)`.
         folder: the output folder (created if missing).
-        frames: the frames; K must have no skew (camera.json has none).
         depth_scale: metres per PNG unit (0.001: millimetres, up to 65.5 m).
 
     Returns:

@@ -34,7 +34,7 @@ def load_mesh(source: str | pathlib.Path, scale: float = 1.0) -> trimesh.Trimesh
         scale: factor applied to the coordinates (0.001 turns millimetres into metres); must be > 0.
 
     Returns:
-        The mesh, vertices merged, scaled.
+        The mesh, vertices merged, scaled. Its `metadata["ffcgs_source"]` records where it came from (`source_of`).
 
     Raises:
         FfcgsError: missing file, unsupported or unreadable format, no triangles (point cloud, path, empty file),
@@ -94,7 +94,22 @@ def load_mesh(source: str | pathlib.Path, scale: float = 1.0) -> trimesh.Trimesh
             f"applied); a mesh in metres needs --scale 1, one in millimetres --scale 0.001",
             stacklevel=2,
         )
+    # trimesh's hash of the geometry, kept until the mesh changes: `source_of` tells an edited mesh by it
+    mesh.metadata[SOURCE_KEY] = (identity(source, scale, mesh), hash(mesh))
     return mesh
+
+
+SOURCE_KEY = "ffcgs_source"
+
+
+def source_of(mesh) -> dict[str, np.ndarray]:
+    """Where `mesh` came from, as `identity`'s arrays, when `load_mesh` read it and it is unchanged since (moved,
+    scaled or edited, it is no longer what the file holds); else {}. Cheap: trimesh keeps its geometry hash until
+    the mesh changes, so this adds no work to a synthesis call."""
+    recorded = mesh.metadata.get(SOURCE_KEY) if isinstance(mesh, trimesh.Trimesh) else None
+    if recorded is None or recorded[1] != hash(mesh):
+        return {}
+    return dict(recorded[0])
 
 
 def _resolve(source: str | pathlib.Path) -> pathlib.Path:

@@ -26,6 +26,7 @@ from jax.custom_derivatives import SymbolicZero
 from ffcgs_jax.core import files
 from ffcgs_jax.core.errors import FfcgsError
 from ffcgs_jax.geometry import mesh_io, sdf_build, sdf_device
+from ffcgs_jax.runtime import compiled
 from ffcgs_jax.geometry.config import SDFConfig
 from ffcgs_jax.core.types import Array, Float
 
@@ -79,6 +80,7 @@ _CACHE_BYTES = 1 << 29  # and at most 512 MB of them (a 32^3 grid is 1 MB in flo
 # key -> GradientSDF; each grid counts at least 1/16 of the bytes, so at most 16 are kept
 _cache = cachetools.LRUCache(_CACHE_BYTES, getsizeof=lambda g: min(max(g.grid.nbytes, _CACHE_BYTES // _CACHE_SIZE),
                                                                   _CACHE_BYTES))
+compiled.register("geometry.sdf grids", _cache)
 _BUILDERS = ("device", "host")
 
 

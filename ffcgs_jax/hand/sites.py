@@ -3,10 +3,12 @@ the palm tetrahedron of the CVAE's pose loss, and the geometric sampler's stando
 
 import math
 
+import cachetools
 import mujoco
 import numpy as np
 
 from ffcgs_jax.hand.kinematics import Hand, open_qpos
+from ffcgs_jax.runtime import compiled
 
 
 def root_frame_sites(hand: Hand, site_ids) -> np.ndarray:
@@ -43,7 +45,8 @@ def open_hand_reach(hand: Hand) -> float:
     return float(((np.asarray(hand.box_vertices, np.float64) - palm_centre_root(hand)) @ n).max())
 
 
-_STANDOFFS: dict = {}  # per HandSpec: finding the reach compiles the MJCF
+_STANDOFFS = cachetools.LRUCache(8)  # per HandSpec: finding the reach compiles the MJCF; a few hands a process
+compiled.register("hand.sites standoffs", _STANDOFFS)
 
 
 def default_standoff(hand: Hand) -> float:

@@ -106,7 +106,7 @@ def solve_batch(W: np.ndarray, U: np.ndarray) -> tuple[np.ndarray, np.ndarray, n
 
 
 @functools.lru_cache(maxsize=8)
-def _host_fn(U_bytes: bytes, K: int):
+def host_fn(U_bytes: bytes, K: int):
     U = np.frombuffer(U_bytes, np.float64).reshape(6, K)
 
     def fn(W):
@@ -121,7 +121,7 @@ def _host_fn(U_bytes: bytes, K: int):
 
 
 def _call(W, U_key):
-    fn = _host_fn(*U_key)
+    fn = host_fn(*U_key)
     N = W.shape[-1]
     shapes = (jax.ShapeDtypeStruct((), W.dtype), jax.ShapeDtypeStruct((6,), W.dtype),
               jax.ShapeDtypeStruct((N,), W.dtype), jax.ShapeDtypeStruct((), jnp.bool_))

@@ -183,12 +183,12 @@ def _q_distance(W, basis0, U_key, max_iter):
 
 
 def _solve_keyed(W, basis0, U_key, max_iter):
-    U, axes = _basis_from_key(*U_key)
+    U, axes = basis_from_key(*U_key)
     return solve(W, jnp.asarray(U), axes, max_iter, basis0)
 
 
 @functools.lru_cache(maxsize=8)
-def _basis_from_key(U_bytes: bytes, K: int):
+def basis_from_key(U_bytes: bytes, K: int):
     U = np.frombuffer(U_bytes, np.float64).reshape(6, K)
     return U, axis_columns(U)
 

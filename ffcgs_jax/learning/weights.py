@@ -1,8 +1,12 @@
 """Weights files of the package's networks: the CVAE's and the success predictor's, the ones shipped per hand, and
-loading any `weights.npz` that `ffcgs train` wrote (`training.train`, `training.evaluator_train`), checked."""
+loading any `weights.npz` that `ffcgs train` wrote (`training.train`, `training.evaluator_train`), checked, and the
+one in-process cache of loaded weights (`cached`): a synthesis call must not read a weights file again."""
 
+from collections.abc import Callable, Hashable
 from importlib import resources
 from pathlib import Path
+
+import cachetools
 
 import jax
 import jax.numpy as jnp
@@ -12,8 +16,25 @@ from ffcgs_jax.core.config import from_dict
 from ffcgs_jax.core.errors import FfcgsError
 from ffcgs_jax.learning import checkpoint, cvae
 from ffcgs_jax.learning.config import ModelConfig
+from ffcgs_jax.runtime import compiled
 
 WEIGHTS_FORMAT = "ffcgs.cvae.v1"
+WEIGHTS_MAX = 8
+"""Loaded weights the process keeps (`cached`), least recently used dropped first: a few MB each, and a process
+uses one sampler and one predictor per hand, so 8 covers a few hands and dtypes without holding stale files."""
+_LOADED = cachetools.LRUCache(WEIGHTS_MAX)
+compiled.register("learning.weights loaded", _LOADED)
+
+
+def cached(path: str | Path, key: Hashable, load: Callable[[], object]):
+    """`load()` of the weights file `path`, kept per version of the file (its resolved path, modification time and
+    size: a file trained again is read again) and `key` (what else the result depends on: the hand, a dtype)."""
+    p = Path(path).expanduser().resolve()
+    st = p.stat()
+    k = (str(p), st.st_mtime_ns, st.st_size, key)
+    if (hit := _LOADED.get(k)) is None:
+        hit = _LOADED[k] = load()
+    return hit
 
 
 def shipped_weights(hand_name: str) -> Path:

@@ -1,35 +1,48 @@
-"""The physics test's settings: `PhysicsConfig` and the protocol names."""
+"""The physics test's settings: `PhysicsConfig` and the built-in protocols' names.
+
+The protocols themselves are registered objects (`protocols.get`, `registry.Protocol`); their names are here too so
+that the CLI and the dataset config can check a name without importing the simulation (`protocols` imports MuJoCo
+and SciPy, and this module). `protocols` refuses to load when its built-ins and these names differ.
+"""
 
 import dataclasses
+import typing
+from typing import ClassVar, Literal
 
-from ffcgs_jax.core.config import check_integer, check_range
+from ffcgs_jax.core.config import check_choice, check_integer, check_range, keeps_old_names
 from ffcgs_jax.core.errors import FfcgsError
 
 PROTOCOLS = ("lift-shake", "six-dir")  # our physics tests: what `--protocol both` and `evaluate` run by default
 # DexGraspBench's MuJoCo test in its two published versions (`dexgraspbench.VERSIONS`: object mass and servo gain)
 DEXGRASPBENCH = ("dexgraspbench", "dexgraspbench-bodex")
-ALL_PROTOCOLS = PROTOCOLS + DEXGRASPBENCH  # every protocol `protocols.run_protocol` implements
-BACKENDS = ("auto", "cpu", "mjx", "warp")
+ALL_PROTOCOLS = PROTOCOLS + DEXGRASPBENCH  # the built-in protocols `protocols` registers, in its order
+
+Backend = Literal["auto", "cpu", "mjx", "warp"]
+BACKENDS = typing.get_args(Backend)
 # the object's collision geometry (`collision.parts`): the default first
-COLLISIONS = ("voxel-hulls", "coacd", "vhacd", "voxel-boxes", "patch-hulls")
+Collision = Literal["voxel-hulls", "coacd", "vhacd", "voxel-boxes", "patch-hulls"]
+COLLISIONS = typing.get_args(Collision)
+Cone = Literal["elliptic", "pyramidal"]
 
 
+@keeps_old_names
 @dataclasses.dataclass(frozen=True)
 class PhysicsConfig:
     """The physics test (`ffcgs eval`): MuJoCo scene, grasp execution and the success rules. Units: SI.
 
     DexGraspBench's protocols (`DEXGRASPBENCH`) replace the contact, solver, mass, gain, force and bound fields
-    with the benchmark's values (`dexgraspbench.config`); they keep `squeeze`, `contact_band`, the convex
-    decomposition and `workers`.
+    with the benchmark's values (the protocol's `fixed`, `dexgraspbench.fixed`; a value you set otherwise is
+    named in one warning line); they keep `squeeze`, `contact_band`, the convex decomposition and `workers`.
 
     Attributes:
         backend: the simulator: "auto" (MuJoCo Warp when a CUDA device and the `[warp]` extra are present, else
             CPU MuJoCo), "cpu" (MuJoCo, threads), "warp" (MuJoCo Warp: grasps as worlds on a CUDA GPU,
             `pip install -e ".[warp]"`) or "mjx" (MuJoCo MJX on the JAX device; far slower). Where the grasps are
             simulated, not what: the success rules are the same (bench/RESULTS.md gives the measured agreement).
-        friction: tangential Coulomb friction of every hand-object and object-table contact (0.6 default; 0.2 is
-            the paper's metric value). Set on the object and table geoms with a higher geom priority, so it wins
-            over the hand's own value.
+        sim_friction: MuJoCo's sliding (tangential Coulomb) friction of every hand-object and object-table contact
+            (0.6 default; the quality LP's cone is `EnergyConfig.lp_friction`, 0.2). Set on the object and table
+            geoms with a higher geom priority, so it wins over the hand's own value. Formerly `friction`, which
+            still reads.
         condim: contact dimensionality: 3 (point contact with friction, the model the LP metric assumes), 4 (adds
             torsional friction), 6 (adds rolling).
         torsional: torsional friction coefficient (metres), used when condim >= 4.
@@ -79,12 +92,14 @@ class PhysicsConfig:
         hull_vertices: at most this many vertices per part (CoACD `max_ch_vertex`).
     """
 
-    backend: str = "auto"
-    friction: float = 0.6
+    RENAMED: ClassVar[dict[str, str]] = {"friction": "sim_friction"}
+
+    backend: Backend = "auto"
+    sim_friction: float = 0.6
     condim: int = 3
     torsional: float = 0.005
     timestep: float = 0.004
-    cone: str = "elliptic"
+    cone: Cone = "elliptic"
     impratio: float = 100.0
     mass: float = 0.1
     density: float = 0.0
@@ -106,7 +121,7 @@ class PhysicsConfig:
     max_rot_deg: float = 15.0
     max_initial_penetration: float = 0.01
     workers: int = 0
-    collision: str = "voxel-hulls"
+    collision: Collision = "voxel-hulls"
     collision_budget: float = 20.0
     voxel_cells: int = 64
     voxel_tol: float = 0.002
@@ -115,13 +130,11 @@ class PhysicsConfig:
     hull_vertices: int = 64
 
     def check(self) -> None:
-        if self.backend not in BACKENDS:
-            raise FfcgsError(f"unknown physics backend {self.backend!r}; backends: {', '.join(BACKENDS)}")
-        check_range("physics.friction", self.friction, 0.0, 10.0)
+        check_choice("physics.backend", self.backend, Backend)
+        check_range("physics.sim_friction", self.sim_friction, 0.0, 10.0)
         if self.condim not in (1, 3, 4, 6):
             raise FfcgsError(f"physics.condim must be 1, 3, 4 or 6, got {self.condim}")
-        if self.cone not in ("elliptic", "pyramidal"):
-            raise FfcgsError(f"physics.cone must be elliptic or pyramidal, got {self.cone!r}")
+        check_choice("physics.cone", self.cone, Cone)
         check_range("physics.torsional", self.torsional, 0.0, 1.0)
         check_range("physics.timestep", self.timestep, 1e-5, 0.02)
         check_range("physics.impratio", self.impratio, 0.1, 1000.0)
@@ -141,8 +154,7 @@ class PhysicsConfig:
         check_range("physics.accel", self.accel, 0.0, 1000.0)
         check_range("physics.max_rot_deg", self.max_rot_deg, 0.0, 180.0)
         check_integer("physics.workers", self.workers, 0, 4096)
-        if self.collision not in COLLISIONS:
-            raise FfcgsError(f"unknown physics.collision {self.collision!r}; choices: {', '.join(COLLISIONS)}")
+        check_choice("physics.collision", self.collision, Collision)
         check_range("physics.collision_budget", self.collision_budget, 0.0, 3600.0)
         check_integer("physics.voxel_cells", self.voxel_cells, 8, 256)
         check_range("physics.voxel_tol", self.voxel_tol, 0.0, 0.05)

@@ -77,8 +77,8 @@ def program_steps(cfg: PhysicsConfig, protocol: str) -> tuple[int, int]:
     """(steps in sequence, world-steps) of one grasp's programs: lift-shake one world; six-dir and DexGraspBench's
     a closing world and six push worlds."""
     dt = cfg.timestep
-    if dgb.is_bench(protocol):
-        c = dgb.config(cfg, protocol)
+    if P.get(protocol).kind == "dexgraspbench":
+        c = P.get(protocol).settings(cfg)
         close, push = 2 * P.steps(dgb.STAGE_TIME, c.timestep), P.steps(c.push_time, c.timestep)
         return close + push, close + 6 * push
     close = P.steps(cfg.close_time, dt) + P.steps(cfg.settle_time, dt)
@@ -107,7 +107,7 @@ def estimate(n: int, protocols, cfg: PhysicsConfig, cores: int, warm: bool, max_
     cpu = n * sum(float(f["cpu"].get(p, 1.0)) for p in protocols) / max(1, cores)
     gpu = 0.0 if warm else float(f["setup_s"])
     for bench in (False, True):
-        mine = [p for p in protocols if dgb.is_bench(p) == bench]
+        mine = [p for p in protocols if (P.get(p).kind == "dexgraspbench") == bench]
         if not mine:
             continue
         seq = max(program_steps(cfg, p)[0] for p in mine)

@@ -48,9 +48,7 @@ What we cannot take over, and what we chose:
 """
 
 import dataclasses
-
-from ffcgs_jax.core.errors import FfcgsError
-from ffcgs_jax.physics.config import DEXGRASPBENCH, PhysicsConfig
+from typing import Any
 
 
 @dataclasses.dataclass(frozen=True)
@@ -62,11 +60,11 @@ class Version:
     source: str
 
 
+# the names `--protocol` takes (`protocols` registers one protocol per version)
 VERSIONS = {
     "dexgraspbench": Version(0.1, 5.0, "DexGraspBench main branch (the standard benchmark)"),
     "dexgraspbench-bodex": Version(0.03, 1.0, "the BODex paper's version (DexGraspBench's `original` branch)"),
 }
-assert tuple(VERSIONS) == DEXGRASPBENCH
 
 TIMESTEP = 0.004  # s
 IMPRATIO = 10.0
@@ -87,18 +85,11 @@ MAX_ROT_DEG = 15.0
 MAX_PENETRATION = 0.01  # m, at the pre-grasp
 
 
-def is_bench(protocol: str) -> bool:
-    return protocol in VERSIONS
-
-
-def config(cfg: PhysicsConfig, protocol: str) -> PhysicsConfig:
-    """`cfg` with every number the benchmark fixes set to its value for `protocol` (a `VERSIONS` name): the scene,
-    the object's mass, the servo gain, the force and the success bounds. What stays `cfg`'s: the squeeze
-    (`squeeze`, `contact_band` when a file has no `squeeze_dir`), the convex decomposition and `workers`."""
-    if protocol not in VERSIONS:
-        raise FfcgsError(f"unknown DexGraspBench version {protocol!r}; versions: {', '.join(VERSIONS)}")
-    v = VERSIONS[protocol]
-    return dataclasses.replace(
-        cfg, friction=FRICTION, condim=CONDIM, torsional=TORSIONAL, timestep=TIMESTEP, cone="elliptic",
-        impratio=IMPRATIO, mass=v.mass, density=0.0, kp=v.kp, accel=ACCEL, push_time=PUSH_TIME, max_move=MAX_MOVE,
-        max_rot_deg=MAX_ROT_DEG, max_initial_penetration=MAX_PENETRATION)
+def fixed(v: Version) -> dict[str, Any]:
+    """The `PhysicsConfig` fields the benchmark fixes, with their values for version `v`: the scene, the object's
+    mass, the servo gain, the force and the success bounds (the protocol's `fixed`, applied by
+    `Protocol.settings`). What stays the user's: the squeeze (`squeeze`, `contact_band` when a file has no
+    `squeeze_dir`), the convex decomposition and `workers`."""
+    return dict(sim_friction=FRICTION, condim=CONDIM, torsional=TORSIONAL, timestep=TIMESTEP, cone="elliptic",
+                impratio=IMPRATIO, mass=v.mass, density=0.0, kp=v.kp, accel=ACCEL, push_time=PUSH_TIME,
+                max_move=MAX_MOVE, max_rot_deg=MAX_ROT_DEG, max_initial_penetration=MAX_PENETRATION)

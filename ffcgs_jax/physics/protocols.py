@@ -1,10 +1,14 @@
-"""The physics protocols as open-loop segments, and the success rules that judge them.
+"""The physics protocols: their open-loop segments, how a backend executes them, their success rules, and each
+protocol as one registered object (`registry.Protocol`: name, scene, steps, success rule, fixed settings).
 
-`closing` (both protocols), `lift_shake` and `push` (six-dir) turn a `Batch` into `Segment`s; `run_protocol`
-drives a backend (`backend.Simulator`) through them and applies the success rules described in `runner`.
-DexGraspBench's protocols (`dexgraspbench`, described there): `grasp_and_squeeze` and `bench_push`.
+`closing` (ours), `lift_shake`, `push` (six-dir), `grasp_and_squeeze` and `bench_push` (DexGraspBench's, described
+in `dexgraspbench`) turn a `Batch` into `Segment`s; `run_protocol` drives a backend (`backend.Simulator`) through a
+protocol and judges it by the protocol's rule (the rules are described in `runner`). The built-in protocols
+register here: `get(name)` returns one, `names()` lists them (`config.ALL_PROTOCOLS` names the same, for the CLI
+to check a name without importing this module; they are checked equal on import); `register` adds another.
 """
 
+import dataclasses
 from collections.abc import Callable
 from typing import Any
 
@@ -14,12 +18,15 @@ import scipy.stats
 from ffcgs_jax.core.errors import FfcgsError
 from ffcgs_jax.physics import dexgraspbench as dgb
 from ffcgs_jax.physics.backend import CHUNK, Batch, Segment, Simulator
-from ffcgs_jax.physics.config import ALL_PROTOCOLS, PhysicsConfig
+from ffcgs_jax.physics.config import ALL_PROTOCOLS, PROTOCOLS, PhysicsConfig
+# the registry, reached through this module: importing it registers the built-in protocols below
+from ffcgs_jax.physics.registry import KINDS, Protocol, get, names, register, say_overrides  # noqa: F401
 
 LIFT_HOLD = 0.25  # seconds of rest between the lift and the shaking
 
 
 DIRECTIONS = np.array([[1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1], [0, 0, -1]], np.float64)
+DIRECTION_NAMES = ("+x", "-x", "+y", "-y", "+z", "-z")
 
 
 # a grasp's `reason` is its index here: new reasons go at the end, so files written before them read the same
@@ -156,11 +163,57 @@ def _void(unstable: np.ndarray, *arrays: np.ndarray) -> None:
 
 
 
+@dataclasses.dataclass
+class Trial:
+    """What a protocol's execution measured of each of a batch's b grasps: `bad` (started in penetration, not
+    simulated), `flagged` (the backend could not trust it), `unstable` (diverged), `lost` (no hand contact), `table`
+    (the object touches the table), `move` (m) and `rot` (deg), and for the six-direction tests `move_dir` and
+    `rot_dir` (b, 6): per direction the largest move and turn (NaN where not pushed)."""
+
+    bad: np.ndarray
+    flagged: np.ndarray
+    unstable: np.ndarray
+    lost: np.ndarray
+    table: np.ndarray
+    move: np.ndarray
+    rot: np.ndarray
+    move_dir: np.ndarray | None = None
+    rot_dir: np.ndarray | None = None
+
+    @classmethod
+    def start(cls, depth: np.ndarray, cfg: PhysicsConfig, directions: bool) -> "Trial":
+        b = len(depth)
+        no, nan = (lambda: np.zeros(b, bool)), (lambda *s: np.full((b, *s), np.nan))
+        return cls(depth > cfg.max_initial_penetration, no(), no(), no(), no(), nan(), nan(),
+                   nan(6) if directions else None, nan(6) if directions else None)
+
+    @property
+    def b(self) -> int:
+        return len(self.bad)
+
+    def outcome(self, protocol: Protocol, cfg: PhysicsConfig) -> dict[str, np.ndarray]:
+        """`run_protocol`'s arrays: the measurements (NaN where diverged; with directions, move and rot the largest
+        over the directions pushed) judged by the protocol's rule."""
+        move, rot = self.move, self.rot
+        if self.move_dir is None:
+            _void(self.unstable, move, rot)
+        else:
+            _void(self.unstable, self.move_dir, self.rot_dir)
+            tried = ~np.isnan(self.move_dir).all(axis=1)
+            move[tried], rot[tried] = np.nanmax(self.move_dir[tried], axis=1), np.nanmax(self.rot_dir[tried], axis=1)
+        success, reason = protocol.rule(self.bad, self.lost, move, rot, self.table, self.unstable, cfg)
+        out = dict(success=success, reason=reason, move=move, rot=rot)
+        if self.move_dir is not None:
+            out.update(move_dir=self.move_dir, rot_dir=self.rot_dir)
+        return {**out, "flagged": self.flagged}
+
+
 def run_protocol(sim: Simulator, batch: Batch, depth: np.ndarray, cfg: PhysicsConfig, protocol: str
                  ) -> dict[str, np.ndarray]:
-    """Execute and test every grasp of `batch` on `sim` (a backend for the protocol's scene). Returns per-grasp
-    arrays: success, reason (index into REASONS), move (m), rot (deg), for six-dir move_dir / rot_dir (B, 6), and
-    flagged (the backend could not trust the simulation: `runner` runs those grasps again on the CPU).
+    """Execute and test every grasp of `batch` on `sim` (a backend for the protocol's scene) under `cfg` with the
+    protocol's fixed settings (`Protocol.settings`). Returns per-grasp arrays: success, reason (index into
+    REASONS), move (m), rot (deg), for the six-direction tests move_dir / rot_dir (B, 6), and flagged (the backend
+    could not trust the simulation: `runner` runs those grasps again on the CPU).
 
     A grasp whose simulation diverged at any step (`sim.unstable`) leaves the batch then and fails "unstable",
     whatever it had shown; its move and rot (and move_dir / rot_dir) are NaN.
@@ -170,72 +223,111 @@ def run_protocol(sim: Simulator, batch: Batch, depth: np.ndarray, cfg: PhysicsCo
     object is `max_slip` or more from its place in the palm (dropped: its move and rot are then those of that
     moment); in six-dir a grasp that lost the object while closing is not pushed, and one that moved or turned
     past a bound in some direction is not pushed further (directions not pushed: NaN in move_dir / rot_dir)."""
-    if protocol not in ALL_PROTOCOLS:
-        raise FfcgsError(f"unknown protocol {protocol!r}; protocols: {', '.join(ALL_PROTOCOLS)}")
-    if dgb.is_bench(protocol):
-        return _run_bench(sim, batch, depth, dgb.config(cfg, protocol))
-    b = len(depth)
-    bad_start = depth > cfg.max_initial_penetration
-    flagged, unstable = np.zeros(b, bool), np.zeros(b, bool)
-    move, rot = np.full(b, np.nan), np.full(b, np.nan)
-    lost = np.zeros(b, bool)
-    idx = np.flatnonzero(~bad_start)
-    if len(idx) == 0:
-        out = dict(success=np.zeros(b, bool), reason=failure_reason(bad_start, lost, lost), move=move, rot=rot)
-        if protocol == "six-dir":
-            out.update(move_dir=np.full((b, 6), np.nan), rot_dir=np.full((b, 6), np.nan))
-        return {**out, "flagged": flagged}
-    closed, held = _drive(sim, sim.initial(batch.rows(idx)), batch, idx, closing(batch, cfg), flagged, unstable)
-    ref = _probe(sim, closed, batch, held, b)
-    if protocol == "lift-shake":
-        def dropped(state, rows):
-            p = sim.probe(state, batch.rows(rows))
-            m = np.linalg.norm(p["rel"] - ref["rel"][rows], axis=1)
-            gone = ~p["touch"] & (m >= cfg.max_slip)
-            move[rows[gone]], rot[rows[gone]] = m[gone], rotation_angle(p["quat"], ref["quat"][rows])[gone]
-            lost[rows[gone]] = True
-            return ~gone
+    p = get(protocol)
+    cfg = p.settings(cfg)
+    trial = Trial.start(depth, cfg, p.directions)
+    if not trial.bad.all():
+        p.execute(sim, batch, cfg, trial)
+    return trial.outcome(p, cfg)
 
-        state, rows = _drive(sim, closed, batch, held, lift_shake(batch, cfg), flagged, unstable, dropped)
-        table = np.zeros(b, bool)
-        if len(rows):
-            end = sim.probe(state, batch.rows(rows), np.array([0.0, 0.0, cfg.lift_height]))
-            move[rows] = np.linalg.norm(end["rel"] - ref["rel"][rows], axis=1)
-            rot[rows] = rotation_angle(end["quat"], ref["quat"][rows])
-            lost[rows], table[rows] = ~end["touch"], end["table"]
-        _void(unstable, move, rot)
-        moved = (move >= cfg.max_slip) | table
-        return dict(success=~(bad_start | lost | moved | unstable),
-                    reason=failure_reason(bad_start, lost, moved, unstable), move=move, rot=rot, flagged=flagged)
-    move_dir, rot_dir = np.full((b, 6), np.nan), np.full((b, 6), np.nan)
-    lost[held] = ~ref["touch"][held]
-    where = np.zeros(b, np.int64)
-    where[held] = np.arange(len(held))  # row of each grasp in the closed states
-    failed = bad_start | lost | unstable
+
+def _closed(sim: Simulator, batch: Batch, cfg: PhysicsConfig, t: Trial) -> tuple[Any, np.ndarray, dict]:
+    """Our protocols' closing of the grasps that start well: their states, which of them are left (not diverged)
+    and the object's pose and contacts then (`_probe`, over all grasps)."""
+    idx = np.flatnonzero(~t.bad)
+    closed, held = _drive(sim, sim.initial(batch.rows(idx)), batch, idx, closing(batch, cfg), t.flagged, t.unstable)
+    return closed, held, _probe(sim, closed, batch, held, t.b)
+
+
+def _execute_lift_shake(sim: Simulator, batch: Batch, cfg: PhysicsConfig, t: Trial) -> None:
+    closed, held, ref = _closed(sim, batch, cfg, t)
+
+    def dropped(state, rows):
+        p = sim.probe(state, batch.rows(rows))
+        m = np.linalg.norm(p["rel"] - ref["rel"][rows], axis=1)
+        gone = ~p["touch"] & (m >= cfg.max_slip)
+        t.move[rows[gone]], t.rot[rows[gone]] = m[gone], rotation_angle(p["quat"], ref["quat"][rows])[gone]
+        t.lost[rows[gone]] = True
+        return ~gone
+
+    state, rows = _drive(sim, closed, batch, held, lift_shake(batch, cfg), t.flagged, t.unstable, dropped)
+    if len(rows):
+        end = sim.probe(state, batch.rows(rows), np.array([0.0, 0.0, cfg.lift_height]))
+        t.move[rows] = np.linalg.norm(end["rel"] - ref["rel"][rows], axis=1)
+        t.rot[rows] = rotation_angle(end["quat"], ref["quat"][rows])
+        t.lost[rows], t.table[rows] = ~end["touch"], end["table"]
+
+
+def _execute_six_dir(sim: Simulator, batch: Batch, cfg: PhysicsConfig, t: Trial) -> None:
+    closed, held, ref = _closed(sim, batch, cfg, t)
+    t.lost[held] = ~ref["touch"][held]
+    _push_each_direction(sim, closed, batch, held, ref, t, t.bad | t.lost | t.unstable, cfg,
+                         lambda direction: [push(batch, cfg, direction, sim.scene.mass)])
+
+
+def _execute_bench(sim: Simulator, batch: Batch, cfg: PhysicsConfig, t: Trial) -> None:
+    """DexGraspBench's test (`dexgraspbench`): grasp and squeeze from the pre-grasp once, then from that state each
+    direction's push, the object's pose compared every `dgb.CHECK_TIME` with its pose at the pre-grasp; a grasp
+    leaves at its first failing check. A grasp that lost hand contact after the squeeze is still pushed."""
+    idx = np.flatnonzero(~t.bad)
+    start = sim.initial(batch.rows(idx))
+    ref = {k: _scatter(v, idx, t.b) for k, v in sim.probe(start, batch.rows(idx)).items()}  # at the pre-grasp
+    squeezed, held = _drive(sim, start, batch, idx, grasp_and_squeeze(batch, cfg), t.flagged, t.unstable)
+    t.lost[held] = ~_probe(sim, squeezed, batch, held, t.b)["touch"][held]
+    every = steps(dgb.CHECK_TIME, cfg.timestep)
+    _push_each_direction(sim, squeezed, batch, held, ref, t, t.bad | t.unstable, cfg,
+                         lambda direction: split_segment(bench_push(batch, cfg, direction, sim.scene.mass), every))
+
+
+def _push_each_direction(sim: Simulator, branch: Any, batch: Batch, held: np.ndarray, ref: dict, t: Trial,
+                         failed: np.ndarray, cfg: PhysicsConfig, segments: Callable[[np.ndarray], list[Segment]]
+                         ) -> None:
+    """The six-direction push of six-dir and DexGraspBench's test: from `branch` (the states of the grasps `held`),
+    `segments(direction)` along each of `DIRECTIONS` in turn, recording in `t.move_dir` / `t.rot_dir` the largest
+    distance and turn from `ref`'s pose at the checks (`_drive`). A grasp past `max_move` or `max_rot_deg` (or
+    diverged) joins `failed` and is not pushed further; those in `failed` from the start are never pushed."""
+    where = np.zeros(t.b, np.int64)
+    where[held] = np.arange(len(held))  # row of each grasp in the branch states
+    failed |= t.unstable
     for k, direction in enumerate(DIRECTIONS):
         rows = np.flatnonzero(~failed)
         if len(rows) == 0:
             break
-        move_dir[rows, k], rot_dir[rows, k] = 0.0, 0.0
+        t.move_dir[rows, k], t.rot_dir[rows, k] = 0.0, 0.0
 
         def pushed(state, rows, k=k):
             p = sim.probe(state, batch.rows(rows))
-            move_dir[rows, k] = np.maximum(move_dir[rows, k], np.linalg.norm(p["pos"] - ref["pos"][rows], axis=1))
-            rot_dir[rows, k] = np.maximum(rot_dir[rows, k], rotation_angle(p["quat"], ref["quat"][rows]))
-            out = (move_dir[rows, k] >= cfg.max_move) | (rot_dir[rows, k] >= cfg.max_rot_deg)
+            t.move_dir[rows, k] = np.maximum(t.move_dir[rows, k], np.linalg.norm(p["pos"] - ref["pos"][rows], axis=1))
+            t.rot_dir[rows, k] = np.maximum(t.rot_dir[rows, k], rotation_angle(p["quat"], ref["quat"][rows]))
+            out = (t.move_dir[rows, k] >= cfg.max_move) | (t.rot_dir[rows, k] >= cfg.max_rot_deg)
             failed[rows[out]] = True
             return ~out
 
-        _drive(sim, sim.take(closed, where[rows]), batch, rows, [push(batch, cfg, direction, sim.scene.mass)],
-               flagged, unstable, pushed)
-        failed |= unstable
-    _void(unstable, move_dir, rot_dir)
-    tried = ~np.isnan(move_dir).all(axis=1)
-    move[tried], rot[tried] = np.nanmax(move_dir[tried], axis=1), np.nanmax(rot_dir[tried], axis=1)
-    moved = (np.nan_to_num(move) >= cfg.max_move) | (np.nan_to_num(rot) >= cfg.max_rot_deg)
-    return dict(success=~(bad_start | lost | moved | unstable), reason=failure_reason(bad_start, lost, moved, unstable),
-                move=move, rot=rot, move_dir=move_dir, rot_dir=rot_dir, flagged=flagged)
+        _drive(sim, sim.take(branch, where[rows]), batch, rows, segments(direction), t.flagged, t.unstable, pushed)
+        failed |= t.unstable
 
+
+def _moved(move: np.ndarray, rot: np.ndarray, cfg: PhysicsConfig) -> np.ndarray:
+    return (np.nan_to_num(move) >= cfg.max_move) | (np.nan_to_num(rot) >= cfg.max_rot_deg)
+
+
+def _rule_lift_shake(bad, lost, move, rot, table, unstable, cfg: PhysicsConfig):
+    """Held: still touched, within `max_slip` of its place in the palm, off the table."""
+    moved = (np.nan_to_num(move) >= cfg.max_slip) | table
+    return ~(bad | lost | moved | unstable), failure_reason(bad, lost, moved, unstable)
+
+
+def _rule_six_dir(bad, lost, move, rot, table, unstable, cfg: PhysicsConfig):
+    """Touched after closing, and within `max_move` and `max_rot_deg` in every push."""
+    moved = _moved(move, rot, cfg)
+    return ~(bad | lost | moved | unstable), failure_reason(bad, lost, moved, unstable)
+
+
+def _rule_bench(bad, lost, move, rot, table, unstable, cfg: PhysicsConfig):
+    """Within the bounds at every check (a grasp without contact may pass by caging); "lost" names a failure
+    without hand contact after the squeeze."""
+    moved = _moved(move, rot, cfg)
+    return ~(bad | moved | unstable), failure_reason(bad, moved & lost, moved, unstable)
 
 
 def grasp_and_squeeze(batch: Batch, cfg: PhysicsConfig) -> list[Segment]:
@@ -258,64 +350,14 @@ def grasp_and_squeeze(batch: Batch, cfg: PhysicsConfig) -> list[Segment]:
 
 
 def bench_push(batch: Batch, cfg: PhysicsConfig, direction: np.ndarray, mass: float) -> Segment:
-    """DexGraspBench's push: `cfg.accel` x mass along `direction` for `cfg.push_time`, targets held at the squeeze."""
-    zero = np.zeros((1, 3))
-    return Segment(steps(cfg.push_time, cfg.timestep), lambda i0, i1: (batch.q_target[:, None], zero),
-                   force=cfg.accel * mass * direction)
+    """DexGraspBench's push: `cfg.accel` x mass along `direction` for `cfg.push_time`, targets held at the squeeze
+    (`push`'s segment, under the benchmark's settings)."""
+    return push(batch, cfg, direction, mass)
 
 
 def split_segment(seg: Segment, k: int) -> list[Segment]:
     """A segment of constant control as consecutive segments of at most k steps (a check after each)."""
     return [Segment(min(k, seg.n - i), seg.make, seg.force, seg.hold) for i in range(0, seg.n, k)]
-
-
-def _run_bench(sim: Simulator, batch: Batch, depth: np.ndarray, cfg: PhysicsConfig) -> dict[str, np.ndarray]:
-    """DexGraspBench's test (`dexgraspbench`; `cfg` from `dexgraspbench.config`): grasp and squeeze from the
-    pre-grasp once, then from that state each direction's push, the object's pose compared every
-    `dgb.CHECK_TIME` with its pose at the pre-grasp; a grasp leaves at its first failing check. Returns the
-    arrays of `run_protocol` with move_dir / rot_dir (B, 6): the largest move and turn over each direction's
-    checks (NaN where not pushed). Reasons: penetration (at the pre-grasp), unstable (the simulation diverged, as in
-    `run_protocol`), lost (failed and no hand contact after the squeeze), slip (failed otherwise)."""
-    b = len(depth)
-    bad_start = depth > cfg.max_initial_penetration
-    flagged, unstable = np.zeros(b, bool), np.zeros(b, bool)
-    move, rot = np.full(b, np.nan), np.full(b, np.nan)
-    move_dir, rot_dir = np.full((b, 6), np.nan), np.full((b, 6), np.nan)
-    lost = np.zeros(b, bool)
-    failed = bad_start.copy()
-    idx = np.flatnonzero(~bad_start)
-    if len(idx):
-        start = sim.initial(batch.rows(idx))
-        ref = {k: _scatter(v, idx, b) for k, v in sim.probe(start, batch.rows(idx)).items()}  # at the pre-grasp
-        squeezed, held = _drive(sim, start, batch, idx, grasp_and_squeeze(batch, cfg), flagged, unstable)
-        lost[held] = ~_probe(sim, squeezed, batch, held, b)["touch"][held]
-        where = np.zeros(b, np.int64)
-        where[held] = np.arange(len(held))  # row of each grasp in the squeezed states
-        every = steps(dgb.CHECK_TIME, cfg.timestep)
-        failed |= unstable
-        for k, direction in enumerate(DIRECTIONS):
-            rows = np.flatnonzero(~failed)
-            if len(rows) == 0:
-                break
-            move_dir[rows, k], rot_dir[rows, k] = 0.0, 0.0
-
-            def checked(state, rows, k=k):
-                p = sim.probe(state, batch.rows(rows))
-                move_dir[rows, k] = np.maximum(move_dir[rows, k], np.linalg.norm(p["pos"] - ref["pos"][rows], axis=1))
-                rot_dir[rows, k] = np.maximum(rot_dir[rows, k], rotation_angle(p["quat"], ref["quat"][rows]))
-                out = (move_dir[rows, k] >= cfg.max_move) | (rot_dir[rows, k] >= cfg.max_rot_deg)
-                failed[rows[out]] = True
-                return ~out
-
-            _drive(sim, sim.take(squeezed, where[rows]), batch, rows,
-                   split_segment(bench_push(batch, cfg, direction, sim.scene.mass), every), flagged, unstable, checked)
-            failed |= unstable
-    _void(unstable, move_dir, rot_dir)
-    tried = ~np.isnan(move_dir).all(axis=1)
-    move[tried], rot[tried] = np.nanmax(move_dir[tried], axis=1), np.nanmax(rot_dir[tried], axis=1)
-    moved = failed & ~bad_start
-    return dict(success=~failed, reason=failure_reason(bad_start, moved & lost, moved, unstable), move=move, rot=rot,
-                move_dir=move_dir, rot_dir=rot_dir, flagged=flagged)
 
 
 def _scatter(values: np.ndarray, idx: np.ndarray, b: int) -> np.ndarray:
@@ -338,3 +380,41 @@ def summary_rows(results: dict[str, np.ndarray], protocols) -> list[tuple[str, s
         counts = ", ".join(f"{r} {int((reason == i).sum())}" for i, r in enumerate(REASONS) if i)
         rows.append((f"{p} failures", counts))
     return rows
+
+
+def _phases_lift_shake(batch: Batch, cfg: PhysicsConfig, mass: float) -> list[tuple[str, Segment, bool]]:
+    close, settle = closing(batch, cfg)
+    segs = lift_shake(batch, cfg)  # lift, hold, then shake unless shake_cycles is 0
+    return [("closing", close, False), ("settle", settle, False)] + [
+        (name, seg, False) for name, seg in zip(("lift", "hold", "shake"), segs, strict=False)]
+
+
+def _phases_six_dir(batch: Batch, cfg: PhysicsConfig, mass: float) -> list[tuple[str, Segment, bool]]:
+    close, settle = closing(batch, cfg)
+    return [("closing", close, False), ("settle", settle, False)] + [
+        (f"push {name}", push(batch, cfg, direction, mass), True)
+        for name, direction in zip(DIRECTION_NAMES, DIRECTIONS, strict=True)]
+
+
+def _phases_bench(batch: Batch, cfg: PhysicsConfig, mass: float) -> list[tuple[str, Segment, bool]]:
+    grasp, squeeze = grasp_and_squeeze(batch, cfg)
+    return [("grasp", grasp, False), ("squeeze", squeeze, False)] + [
+        (f"push {name}", bench_push(batch, cfg, direction, mass), True)
+        for name, direction in zip(DIRECTION_NAMES, DIRECTIONS, strict=True)]
+
+
+register(Protocol(
+    "lift-shake", "the paper's real-robot test: lift, then shake along x; the object must stay in the palm",
+    kind="ours", gravity=True, table=True, hold=False, execute=_execute_lift_shake, rule=_rule_lift_shake,
+    phases=_phases_lift_shake, default=True))
+register(Protocol(
+    "six-dir", "a force of accel x mass along +-x, +-y, +-z in turn, gravity off; the object must stay put",
+    kind="ours", gravity=False, table=False, hold=True, execute=_execute_six_dir, rule=_rule_six_dir,
+    phases=_phases_six_dir, default=True, directions=True))
+for _name, _version in dgb.VERSIONS.items():
+    register(Protocol(
+        _name, f"DexGraspBench's MuJoCo test, {_version.source}", kind="dexgraspbench", gravity=False, table=False,
+        hold=False, execute=_execute_bench, rule=_rule_bench, phases=_phases_bench, fixed=dgb.fixed(_version),
+        directions=True))
+if names() != ALL_PROTOCOLS or names(default=True) != PROTOCOLS:  # the names the CLI offers are these protocols
+    raise FfcgsError(f"the registered protocols {names()} differ from physics.config's {ALL_PROTOCOLS}")

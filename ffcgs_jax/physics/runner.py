@@ -61,12 +61,13 @@ import trimesh
 from ffcgs_jax.core.errors import FfcgsError
 from ffcgs_jax.hand.spec import HandSpec, load_spec
 from ffcgs_jax.physics import convex
-from ffcgs_jax.physics import dexgraspbench as dgb
+from ffcgs_jax.physics import protocols as physics_protocols
 from ffcgs_jax.physics import scene as physics_scene
 from ffcgs_jax.physics.backend import Batch, mat_to_quat, pose_hand
 from ffcgs_jax.physics.backend_cpu import GROUP_PER_THREAD, CpuSim
-from ffcgs_jax.physics.config import ALL_PROTOCOLS, BACKENDS, PROTOCOLS, PhysicsConfig
+from ffcgs_jax.physics.config import BACKENDS, PROTOCOLS, PhysicsConfig
 from ffcgs_jax.physics.protocols import result_key, run_protocol
+from ffcgs_jax.physics.results import PhysicsResult
 from ffcgs_jax.physics.scene import PhysicsScene
 
 # m beyond the hand's reach before a wrist pose is refused: hull parts may bulge past the mesh a little, and a grasp
@@ -100,19 +101,17 @@ def resolve_backend(name: str, n: int | None = None, protocols=PROTOCOLS, cfg: P
 
 def scenes(spec: HandSpec, mesh: trimesh.Trimesh, cfg: PhysicsConfig, protocols, table_z: float | None = None,
            parts=None) -> dict[str, PhysicsScene]:
-    """One compiled scene per protocol (lift-shake: gravity and table; six-dir: neither; DexGraspBench's: its
-    own contacts and solver, `dexgraspbench.config`). `parts`: the object's convex parts; default
-    `convex.decompose(mesh, cfg)`."""
+    """One compiled scene per protocol, as the protocol asks (`registry.Protocol`: lift-shake gravity and table;
+    six-dir neither, the object held while closing; DexGraspBench's its own contacts and solver, under its fixed
+    settings). `parts`: the object's convex parts; default `convex.decompose(mesh, cfg)`."""
     parts = convex.decompose(mesh, cfg) if parts is None else parts
     tz = float(mesh.bounds[0, 2]) if table_z is None else table_z
     out = {}
     for p in protocols:
-        if dgb.is_bench(p):
-            out[p] = physics_scene.build(spec, mesh, parts, dgb.config(cfg, p), gravity=False, dexgraspbench=True)
-            continue
-        lift = p == "lift-shake"
-        out[p] = physics_scene.build(spec, mesh, parts, cfg, gravity=lift, table_z=tz if lift else None,
-                                     hold=not lift)
+        pr = physics_protocols.get(p)
+        out[p] = physics_scene.build(spec, mesh, parts, pr.settings(cfg), gravity=pr.gravity,
+                                     table_z=tz if pr.table else None, hold=pr.hold,
+                                     dexgraspbench=pr.kind == "dexgraspbench")
     return out
 
 
@@ -330,8 +329,7 @@ def evaluate_many(spec: HandSpec, items: Iterable[Item], cfg: PhysicsConfig = Ph
     cfg.check()
     protocols = tuple(protocols)
     for p in protocols:
-        if p not in ALL_PROTOCOLS:
-            raise FfcgsError(f"unknown protocol {p!r}; protocols: {', '.join(ALL_PROTOCOLS)}")
+        physics_protocols.get(p)  # an unknown name: one line listing the registered ones
     listed = isinstance(items, (list, tuple))
     if listed:
         for it in items:
@@ -339,10 +337,11 @@ def evaluate_many(spec: HandSpec, items: Iterable[Item], cfg: PhysicsConfig = Ph
     asked = cfg.backend if backend is None else backend
     n = sum(int(np.shape(it.q)[0]) for it in items) if listed else None
     backend, _ = resolve_backend(asked, n, protocols, cfg)
-    bench = [p for p in protocols if dgb.is_bench(p)]
+    bench = [p for p in protocols if physics_protocols.get(p).kind == "dexgraspbench"]
     if bench and backend == "mjx":
         raise FfcgsError(f"protocol {bench[0]} runs on the CPU and Warp backends only (MuJoCo's no-slip solver, "
                          f"which MJX lacks): use --backend cpu, warp or auto")
+    physics_protocols.say_overrides(cfg, protocols)
     tick = progress or (lambda n: None)
     stats = {} if stats is None else stats
     stats.update(backend=backend, geometry_s=0.0)
@@ -374,9 +373,9 @@ def _prepared(spec: HandSpec, it: Item, cfg: PhysicsConfig, protocols, stats: di
     out: dict[str, np.ndarray] = {"initial_penetration": grasps.depth, "palm_contact": grasps.palm}
     plans = {}
     for p, scene in built.items():
-        pcfg = dgb.config(cfg, p) if dgb.is_bench(p) else cfg
+        pcfg = physics_protocols.get(p).settings(cfg)
         batch, depth = _plan(scene, grasps, pcfg)
-        if dgb.is_bench(p):
+        if scene.dexgraspbench:
             out[result_key(p, "pregrasp_penetration")] = depth
         plans[p] = (scene, batch, depth, pcfg)
     if stats is not None:
@@ -499,10 +498,11 @@ def _on_worlds(spec: HandSpec, items: Iterable[Item], cfg: PhysicsConfig, protoc
 
 
 # hand, mesh, grasps and cfg unannotated: a wrong type is refused with FfcgsError here, not by a type checker
-def evaluate_grasps(hand, mesh, grasps, cfg=PhysicsConfig(), protocols=None, which=None, backend: str | None = None,
-                    table_z: float | None = None, progress: Callable[[int], None] | None = None, parts=None
-                    ) -> dict[str, np.ndarray]:
-    """`evaluate` in `synthesize`'s argument order (`fj.evaluate_physics`): the physics test of a grasp set.
+def evaluate_grasps(hand, mesh, grasps, cfg=PhysicsConfig(), *, protocols=None,
+                    progress: Callable[[int], None] | None = None, which=None, backend: str | None = None,
+                    table_z: float | None = None, parts=None) -> PhysicsResult:
+    """The physics test of a grasp set (`fj.evaluate_physics`), in the public argument order: hand, object, grasps,
+    cfg, then keywords.
 
     Args:
         hand: the `Hand` the grasps were made with (`load_hand`), its `HandSpec`, or a built-in name or spec path.
@@ -511,17 +511,17 @@ def evaluate_grasps(hand, mesh, grasps, cfg=PhysicsConfig(), protocols=None, whi
             (B, 4, 4) and `q` (B, Q); its `squeeze_dir` (B, Q), when present, is the squeeze direction.
         cfg: the physics settings.
         protocols: any of `config.ALL_PROTOCOLS`, or one protocol's name; default `config.PROTOCOLS`.
+        progress, backend, table_z, parts: as `evaluate`'s.
         which: the grasps to test, as indices or a (B,) boolean mask; default all.
-        backend, table_z, progress, parts: as `evaluate`'s.
 
     Returns:
-        `evaluate`'s per-grasp arrays, one row per grasp tested, in the order of `which`.
+        A `PhysicsResult`, one row per grasp tested, in the order of `which`: per protocol a `ProtocolOutcome`
+        (`result.protocols["six-dir"].success`, ...); `result.as_arrays()` gives `evaluate`'s flat arrays.
     """
     spec = _hand_spec(hand)
     if not isinstance(mesh, trimesh.Trimesh):
         raise FfcgsError(f"mesh must be a trimesh.Trimesh (fj.load_mesh), got {type(mesh).__name__}")
-    if not isinstance(cfg, PhysicsConfig):
-        raise FfcgsError(f"cfg must be a PhysicsConfig, got {type(cfg).__name__}")
+    check_cfg(cfg, "evaluate_physics")
     # a GraspSet by its arrays, as `validate` reads it: physics does not import synthesis
     arrays = getattr(grasps, "arrays", grasps)
     if not hasattr(arrays, "keys") or not hasattr(arrays, "__getitem__"):
@@ -548,8 +548,16 @@ def evaluate_grasps(hand, mesh, grasps, cfg=PhysicsConfig(), protocols=None, whi
         protocols = PROTOCOLS
     elif isinstance(protocols, str):
         protocols = (protocols,)
-    return evaluate(spec, mesh, pose[idx], q[idx], cfg, protocols, backend, table_z, progress,
-                    None if squeeze is None else np.asarray(squeeze)[idx], parts)
+    arrays = evaluate(spec, mesh, pose[idx], q[idx], cfg, protocols, backend, table_z, progress,
+                      None if squeeze is None else np.asarray(squeeze)[idx], parts)
+    return PhysicsResult.from_arrays(arrays, protocols, index=idx)
+
+
+def check_cfg(cfg, function: str) -> None:
+    """Refuse a `cfg` that is no `PhysicsConfig` in one line, naming the argument order (protocols a keyword)."""
+    if not isinstance(cfg, PhysicsConfig):
+        raise FfcgsError(f"cfg must be a PhysicsConfig, got {type(cfg).__name__}: {function}(hand, mesh, grasps, cfg, "
+                         f"protocols=...) takes the protocols as a keyword")
 
 
 def _hand_spec(hand) -> HandSpec:

@@ -105,7 +105,7 @@ def build(spec: HandSpec, mesh: trimesh.Trimesh, parts: list[tuple[np.ndarray, n
           hold: bool = False, dexgraspbench: bool = False, table_mocap: bool = False) -> PhysicsScene:
     """Compile the scene. `parts`: convex pieces from `convex.decompose(mesh)`; table_z None = no table;
     hold: add a weld of the object to the world (`hold_eq`) that the protocol switches on and off;
-    dexgraspbench: DexGraspBench's contacts and solver (with `dexgraspbench.config(cfg, ...)`, no gravity);
+    dexgraspbench: DexGraspBench's contacts and solver (with the protocol's `settings(cfg)`, no gravity);
     table_mocap: the table on a mocap body (`add_table`), for the GPU worlds' model (`world_model`)."""
     s = mujoco.MjSpec.from_file(spec.mjcf_path)
     s.option.timestep = cfg.timestep
@@ -116,7 +116,7 @@ def build(spec: HandSpec, mesh: trimesh.Trimesh, parts: list[tuple[np.ndarray, n
     if dexgraspbench:
         s.option.noslip_iterations = dgb.NOSLIP_ITERATIONS
         for g in s.geoms:  # the hand's, before the object and table are added
-            g.friction[:2] = [cfg.friction, cfg.torsional]
+            g.friction[:2] = [cfg.sim_friction, cfg.torsional]
             g.condim = cfg.condim
             g.solref[:2] = dgb.HAND_SOLREF
             g.solimp[:3] = dgb.HAND_SOLIMP
@@ -204,7 +204,7 @@ def _gravcomp(body) -> None:
 
 
 def _contact(g, cfg: PhysicsConfig, priority: int = 1) -> None:
-    g.friction = [cfg.friction, cfg.torsional, ROLLING]
+    g.friction = [cfg.sim_friction, cfg.torsional, ROLLING]
     g.condim = cfg.condim
     g.priority = priority
 

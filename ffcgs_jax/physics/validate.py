@@ -12,7 +12,7 @@ import dataclasses
 import json
 import os
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 
 import numpy as np
 import trimesh
@@ -22,21 +22,23 @@ from ffcgs_jax.evaluation import ranking
 from ffcgs_jax.hand.spec import HandSpec
 from ffcgs_jax.physics import protocols as physics_protocols
 from ffcgs_jax.physics import runner
-from ffcgs_jax.physics.config import ALL_PROTOCOLS, PROTOCOLS, PhysicsConfig
+from ffcgs_jax.physics.config import PROTOCOLS, PhysicsConfig
 
 
-def validate(hand, mesh: trimesh.Trimesh, grasps, protocols=PROTOCOLS, cfg: PhysicsConfig = PhysicsConfig(),
-             candidates: str = "valid", need: int = 0, progress: Callable[[int], None] | None = None):
-    """Simulate `grasps` on `mesh` and return them ranked with the outcome first.
+def validate(hand, mesh: trimesh.Trimesh, grasps, cfg: PhysicsConfig = PhysicsConfig(), *, protocols=PROTOCOLS,
+             progress: Callable[[int], None] | None = None, candidates: str = "valid", need: int = 0):
+    """Simulate `grasps` on `mesh` and return them ranked with the outcome first. The public argument order: hand,
+    object, grasps, cfg, then keywords.
 
     Args:
         hand: the `Hand` the grasps were made with (or its `HandSpec`).
         mesh: the object, in the grasps' object frame.
         grasps: a `GraspSet` (from `synthesize` or `load_grasps`).
-        protocols: physics protocols, any of `physics.config.ALL_PROTOCOLS` ("lift-shake", "six-dir",
-            "dexgraspbench", ...); a grasp passes when it passes every one.
         cfg: the physics settings; `cfg.backend` "auto" takes MuJoCo Warp where it is faster
             (`runner.resolve_backend`).
+        protocols: physics protocols, any of `physics.config.ALL_PROTOCOLS` ("lift-shake", "six-dir",
+            "dexgraspbench", ...), or one protocol's name; a grasp passes when it passes every one.
+        progress: called with the number of trials done, as they finish.
         candidates: "valid" simulates the grasps the synthesis marked valid (the others cannot come first and are
             left untested), "all" every grasp.
         need: 0 simulates every candidate with every protocol. k > 0 stops once k grasps pass: the candidates go
@@ -46,7 +48,6 @@ def validate(hand, mesh: trimesh.Trimesh, grasps, protocols=PROTOCOLS, cfg: Phys
             and a protocol not run on a grasp that already failed another has no result (NaN / False / -1).
             On MuJoCo Warp every candidate and protocol runs at once instead (one launch: its time is the longest
             program's, not the number of grasps), so every candidate gets every result.
-        progress: called with the number of trials done, as they finish.
 
     Returns:
         The same grasp set with, per grasp, the runner's results (`<protocol>_success`, `_reason`, `_move`, ...;
@@ -56,10 +57,12 @@ def validate(hand, mesh: trimesh.Trimesh, grasps, protocols=PROTOCOLS, cfg: Phys
     """
     if candidates not in ("valid", "all"):
         raise FfcgsError(f"candidates must be 'valid' or 'all', got {candidates!r}")
+    runner.check_cfg(cfg, "validate")
     check_grasp_set(grasps, "validate")
+    protocols = (protocols,) if isinstance(protocols, str) else protocols
     tested = np.ones(len(grasps["q"]), bool) if candidates == "all" else np.asarray(grasps["valid"], bool)
     arrays = check(getattr(hand, "spec", hand), mesh, grasps.arrays, tested, protocols, cfg, progress, need)
-    return dataclasses.replace(grasps, arrays=arrays)
+    return grasps.with_arrays(arrays)
 
 
 # what `runner.evaluate` returns per protocol (`<protocol>_<result>`)
@@ -71,17 +74,17 @@ def chunk_size() -> int:
     return max(8, os.cpu_count() or 1)
 
 
-def check(spec: HandSpec, mesh: trimesh.Trimesh, arrays: dict[str, np.ndarray], tested: np.ndarray, protocols,
+def check(spec: HandSpec, mesh: trimesh.Trimesh, arrays: Mapping[str, np.ndarray], tested: np.ndarray, protocols,
           cfg: PhysicsConfig = PhysicsConfig(), progress: Callable[[int], None] | None = None, need: int = 0
           ) -> dict[str, np.ndarray]:
     """`validate` on a grasp file's arrays (`wrist_pose`, `q`, optional `squeeze_dir`): a copy with the results
     of the grasps where `tested` is True (with `need`, of those simulated before enough passed) and the record of
     the check added."""
     protocols = tuple(protocols)
-    bad = [p for p in protocols if p not in ALL_PROTOCOLS]
-    if bad or not protocols:
-        raise FfcgsError(f"unknown protocol {bad[0]!r}; protocols: {', '.join(ALL_PROTOCOLS)}" if bad
-                         else "the physics check needs at least one protocol")
+    if not protocols:
+        raise FfcgsError("the physics check needs at least one protocol")
+    for p in protocols:
+        physics_protocols.get(p)  # an unknown name: one line listing the registered ones
     if isinstance(need, bool) or not isinstance(need, (int, np.integer)) or need < 0:
         raise FfcgsError(f"need must be an integer >= 0, got {need!r}")
     n = len(arrays["q"])

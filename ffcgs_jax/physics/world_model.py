@@ -29,12 +29,12 @@ import trimesh
 
 from ffcgs_jax.core.errors import FfcgsError
 from ffcgs_jax.hand.spec import HandSpec
-from ffcgs_jax.physics import dexgraspbench as dgb
+from ffcgs_jax.physics import protocols
 from ffcgs_jax.physics import scene as physics_scene
 from ffcgs_jax.physics.config import PhysicsConfig
 from ffcgs_jax.physics.scene import PhysicsScene
 
-KINDS = ("ours", "dexgraspbench")
+KINDS = protocols.KINDS  # the scenes protocols run on
 # mesh fields in MuJoCo's layout: per mesh (nmesh, ...) with the address fields that point into a flat array, and
 # the flat arrays themselves; indices stored inside the flat arrays (faces, graph, polygon vertices and maps) are
 # local to their mesh, so appending a mesh shifts only the addresses
@@ -58,7 +58,7 @@ def _placeholder() -> tuple[trimesh.Trimesh, tuple[np.ndarray, np.ndarray]]:
 
 def template(spec: HandSpec, cfg: PhysicsConfig, kind: str, slots: int) -> PhysicsScene:
     """The scene of `kind` (`KINDS`) with an object of `slots` placeholder parts; `cfg` as the objects' scenes were
-    built with (for "dexgraspbench": `dexgraspbench.config(cfg, protocol)`)."""
+    built with (a protocol's `settings(cfg)`)."""
     if kind not in KINDS:
         raise FfcgsError(f"unknown world model kind {kind!r}; kinds: {', '.join(KINDS)}")
     box, part = _placeholder()
@@ -207,4 +207,4 @@ def kind_of(scene: PhysicsScene) -> str:
 
 
 def protocol_kind(protocol: str) -> str:
-    return "dexgraspbench" if dgb.is_bench(protocol) else "ours"
+    return protocols.get(protocol).kind

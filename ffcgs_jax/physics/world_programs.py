@@ -99,18 +99,15 @@ class JobState:
     def result(self) -> dict[str, np.ndarray] | None:
         if self.cpu is not None:
             return None
-        p, cfg = self.job.protocol, self.job.cfg
-        bad, lost, unstable = self.bad_start, self.lost, self.unstable.copy()
-        if p == "lift-shake":
-            move, rot = self.move.copy(), self.rot.copy()
-            move[unstable], rot[unstable] = np.nan, np.nan
-            moved = (np.nan_to_num(move) >= cfg.max_slip) | self.table
-            return dict(success=~(bad | lost | moved | unstable), reason=P.failure_reason(bad, lost, moved, unstable),
-                        move=move, rot=rot, flagged=self.flagged)
-        bench = dgb.is_bench(p)
-        # the CPU pushes the directions in turn and stops a grasp at its first failing one: the directions after it
-        # are not pushed there (NaN), which the arrays here repeat
-        failed = bad | unstable | (np.zeros_like(lost) if bench else lost)
+        protocol, cfg = P.get(self.job.protocol), self.job.cfg
+        bad, unstable = self.bad_start, self.unstable.copy()
+        if not protocol.directions:
+            return P.Trial(bad, self.flagged, unstable, self.lost, self.table, self.move.copy(), self.rot.copy()
+                           ).outcome(protocol, cfg)
+        # the CPU pushes the directions in turn and stops a grasp at its first failing one (six-dir does not push a
+        # grasp that lost the object while closing): the directions after it are not pushed there (NaN), which the
+        # arrays here repeat
+        failed = bad | unstable | (self.lost if protocol.kind == "ours" else np.zeros_like(self.lost))
         move_dir, rot_dir = np.full((self.b, 6), np.nan), np.full((self.b, 6), np.nan)
         for k in range(6):
             rows = ~failed & self.pushed[:, k]
@@ -118,17 +115,9 @@ class JobState:
             out = (self.move_dir[:, k] >= cfg.max_move) | (self.rot_dir[:, k] >= cfg.max_rot_deg)
             unstable |= rows & self.unstable_dir[:, k]
             failed |= rows & (out | self.unstable_dir[:, k])
-        move_dir[unstable], rot_dir[unstable] = np.nan, np.nan
-        tried = ~np.isnan(move_dir).all(axis=1)
-        move, rot = np.full(self.b, np.nan), np.full(self.b, np.nan)
-        move[tried], rot[tried] = np.nanmax(move_dir[tried], axis=1), np.nanmax(rot_dir[tried], axis=1)
-        if bench:
-            moved = failed & ~bad
-            return dict(success=~failed, reason=P.failure_reason(bad, moved & lost, moved, unstable), move=move,
-                        rot=rot, move_dir=move_dir, rot_dir=rot_dir, flagged=self.flagged)
-        moved = (np.nan_to_num(move) >= cfg.max_move) | (np.nan_to_num(rot) >= cfg.max_rot_deg)
-        return dict(success=~(bad | lost | moved | unstable), reason=P.failure_reason(bad, lost, moved, unstable),
-                    move=move, rot=rot, move_dir=move_dir, rot_dir=rot_dir, flagged=self.flagged)
+        nan = np.full(self.b, np.nan)
+        return P.Trial(bad, self.flagged, unstable, self.lost, self.table, nan, nan.copy(), move_dir, rot_dir
+                       ).outcome(protocol, cfg)
 
 
 @dataclasses.dataclass

@@ -38,6 +38,7 @@ import numpy as np
 
 from ffcgs_jax.core.errors import FfcgsError
 from ffcgs_jax.hand.spec import HandSpec
+from ffcgs_jax.runtime import compiled
 from ffcgs_jax.physics import protocols as P
 from ffcgs_jax.physics import world_kernels as K
 from ffcgs_jax.physics import world_model
@@ -71,7 +72,7 @@ MESH_FIELDS = ("vertadr", "vertnum", "faceadr", "normaladr", "normalnum", "graph
 class Job:
     """One protocol over one object's grasps, as `protocols.run_protocol` takes it: `scene` (the object's scene
     for `protocol`, from `runner.scenes`), `batch` and `depth` (`runner.prepare`), `cfg` (for DexGraspBench's
-    protocols `dexgraspbench.config(cfg, protocol)`). `object_key`: jobs with the same key share the object's
+    protocols their `settings(cfg)`). `object_key`: jobs with the same key share the object's
     meshes on the device (default: one copy per job)."""
 
     scene: PhysicsScene
@@ -386,7 +387,8 @@ class Engine:
                       d.qacc_warmstart.numpy()[busy], self.tag[busy].copy())
 
 
-_ENGINES: dict[tuple, Engine] = {}
+_ENGINES: dict[tuple, Engine] = {}  # one per kind (`engine`): bounded by the kinds
+compiled.register("physics.worlds engines", _ENGINES)
 
 
 def engine(spec: HandSpec, cfg: PhysicsConfig, kind: str, slots: int, nworld: int = MAX_WORLDS,

@@ -29,6 +29,7 @@ from typing import Any
 import jax
 
 from ffcgs_jax.core import version as package_version
+from ffcgs_jax.runtime import compiled
 
 _ADDRESS = re.compile(r" at 0x[0-9a-fA-F]+")
 _REGISTERED: set[type] = set()
@@ -55,6 +56,9 @@ def _source_hash() -> str:
         except importlib.metadata.PackageNotFoundError:
             pass
     return h.hexdigest()
+
+
+compiled.register("runtime.traced_store source hash", _source_hash)
 
 
 def key(name: str, static: Hashable, leaves, treedef) -> str:

@@ -4,25 +4,36 @@ pipeline's `GraspConfig`, which nests them with the SDF's.
 
 import dataclasses
 import math
+import typing
 import warnings
+from typing import ClassVar, Literal
 
-from ffcgs_jax.core.config import SEED_MAX, check_integer, check_range, from_dict, read_toml
+from ffcgs_jax.core.config import (SEED_MAX, check_choice, check_integer, check_range, from_dict, keeps_old_names,
+                                   read_toml)
 from ffcgs_jax.core.errors import FfcgsError
 from ffcgs_jax.geometry.config import SDFConfig
 
-LP_SOLVERS = ("jax", "proxsuite")
+LpSolver = Literal["jax", "proxsuite"]
+LP_SOLVERS = typing.get_args(LpSolver)
+# E_c's offset d0 (metres) aims the fingertips d0 inside the surface. Below 0 it would aim them -d0 outside it, a
+# hand that hovers and never holds, which the evaluation (`metrics.MetricsConfig`, derived from this config) does not
+# measure as a grasp; above 5 cm it would push them through any object this package grasps. The one check of d0.
+D0_RANGE = (0.0, 0.05)
 
 
+@keeps_old_names
 @dataclasses.dataclass(frozen=True)
 class EnergyConfig:
     """E = E_g + a_c E_c + a_q E_q (+ a_pen P), eq. 5 of the paper.
 
     Attributes:
-        mu: friction coefficient of the linearised cone (paper: 0.2).
+        lp_friction: friction coefficient of the linearised cone the quality LP and the evaluation use (paper's mu:
+            0.2); the simulator's is `PhysicsConfig.sim_friction`. Formerly `mu`, which still reads.
         cone_edges: m, edges of the polyhedral friction cone (8).
         basis_size: K directions on the 6-D unit sphere for the Q-distance LP (64: +-e_i and 52 spread ones; the
             gauge then stays within a few per cent of the Euclidean distance while the LP stays small).
-        d0: E_c offset: 0 as in the paper's simulation, 0.005 for its real-robot setting (a slight squeeze).
+        d0: E_c offset in [0, 0.05] m (`D0_RANGE`): 0 as in the paper's simulation, 0.005 for its real-robot
+            setting (a slight squeeze).
         a_c, a_q: weights of E_c (metres) and E_q (paper: 5 and 0.5).
         closure_margin: delta, the force-closure margin the descent aims for: E_m (`quality.support_margin`) is 0
             once the wrench hull's support reaches delta in each of `margin_dirs` directions searched where the hull
@@ -46,7 +57,9 @@ class EnergyConfig:
     Defaults are this project's method; `configs/paper.toml` sets the paper's (a_pen 0, normal_grad false).
     """
 
-    mu: float = 0.2
+    RENAMED: ClassVar[dict[str, str]] = {"mu": "lp_friction"}
+
+    lp_friction: float = 0.2
     cone_edges: int = 8
     basis_size: int = 64
     d0: float = 0.0
@@ -58,22 +71,24 @@ class EnergyConfig:
     margin_steps: int = 4
     a_pen: float = 1e4
     normal_grad: bool = True
-    lp_solver: str = "jax"
+    lp_solver: LpSolver = "jax"
     lp_pivots: int = 100
 
     def check(self) -> None:
-        if self.lp_solver not in LP_SOLVERS:
-            raise FfcgsError(f"unknown energy.lp_solver {self.lp_solver!r}; solvers: {', '.join(LP_SOLVERS)}")
+        check_choice("energy.lp_solver", self.lp_solver, LpSolver)
         check_integer("energy.lp_pivots", self.lp_pivots, 1, 100_000)
-        check_range("energy.mu", self.mu, 0.0, 2.0)
+        check_range("energy.lp_friction", self.lp_friction, 0.0, 2.0)
         check_integer("energy.cone_edges", self.cone_edges, 3, 64)
         check_integer("energy.basis_size", self.basis_size, 12, 1024)
-        check_range("energy.d0", self.d0, -0.05, 0.05)
+        check_range("energy.d0", self.d0, *D0_RANGE)
         check_range("energy.closure_margin", self.closure_margin, 0.0, 1.0)
         check_integer("energy.margin_dirs", self.margin_dirs, 1, 1024)
         check_integer("energy.margin_steps", self.margin_steps, 0, 1000)
         for name in ("a_c", "a_q", "a_m", "a_pen"):
             check_range(f"energy.{name}", getattr(self, name), 0.0, 1e6)
+
+
+OptimMethod = Literal["gd", "adam"]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -106,7 +121,7 @@ class OptimConfig:
     """
 
     iters: int = 100
-    method: str = "adam"
+    method: OptimMethod = "adam"
     step: float = 0.3
     step_end: float = 0.03
     lr: float = 0.05
@@ -122,8 +137,7 @@ class OptimConfig:
         check_range("optim.contact_ramp", self.contact_ramp, 1.0, 1e4)
         check_range("optim.wrist_rot_scale", self.wrist_rot_scale, 0.0, 100.0)
         check_range("optim.wrist_shift_scale", self.wrist_shift_scale, 0.0, 100.0)
-        if self.method not in ("gd", "adam"):
-            raise FfcgsError(f"optim.method must be gd or adam, got {self.method!r}")
+        check_choice("optim.method", self.method, OptimMethod)
         check_range("optim.lr", self.lr, 0.0, 10.0)
         check_range("optim.lr_end", self.lr_end, 0.0, 10.0)
         check_integer("optim.iters", self.iters, 1, 100000)
@@ -155,8 +169,10 @@ class FilterConfig:
         check_range("filters.tip_table_margin", self.tip_table_margin, -1.0, 1.0)
 
 
-SAMPLERS = ("cvae", "geometric", "random")  # the names `samplers.CORES` implements
-RANKS = ("auto", "predicted", "energy")  # GraspConfig.rank: `synthesis.prediction.resolve`
+Sampler = Literal["cvae", "geometric", "random"]  # the names `samplers.CORES` implements
+SAMPLERS = typing.get_args(Sampler)
+Rank = Literal["auto", "predicted", "energy"]  # GraspConfig.rank: `synthesis.prediction.resolve`
+RANKS = typing.get_args(Rank)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -237,7 +253,7 @@ class GraspConfig:
     """
 
     n: int = 32
-    sampler: str = "auto"
+    sampler: Literal["auto", Sampler] = "auto"
     seed: int = 0
     max_penetration: float = 0.01
     max_contact_rms: float = 0.01
@@ -249,17 +265,15 @@ class GraspConfig:
     optim: OptimConfig = OptimConfig()
     filters: FilterConfig = FilterConfig()
     sampling: SamplerConfig = SamplerConfig()
-    rank: str = "auto"
+    rank: Rank = "auto"
     evaluator: str = ""
 
     def check(self) -> None:
         check_integer("n", self.n, 1, 1_000_000)
-        if self.rank not in RANKS:
-            raise FfcgsError(f"rank must be one of {', '.join(RANKS)}, got {self.rank!r}")
+        check_choice("rank", self.rank, Rank)
         if not isinstance(self.evaluator, str):
             raise FfcgsError(f"evaluator must be a file path (or \"\" for the shipped weights), got {self.evaluator!r}")
-        if self.sampler not in ("auto", *SAMPLERS):
-            raise FfcgsError(f"unknown sampler {self.sampler!r}; samplers: auto, {', '.join(SAMPLERS)}")
+        check_choice("sampler", self.sampler, ("auto", *SAMPLERS))
         if not 0 <= self.max_penetration <= 1:
             raise FfcgsError(f"max_penetration must be in [0, 1] m, got {self.max_penetration}")
         if not 0 <= self.max_contact_rms <= 1:

@@ -12,6 +12,7 @@ from ffcgs_jax.geometry import sdf
 from ffcgs_jax.hand import kinematics as K
 from ffcgs_jax.hand.kinematics import Hand, forward_kinematics
 from ffcgs_jax.kernels import quality
+from ffcgs_jax.runtime import compiled
 from ffcgs_jax.synthesis import filters as F
 from ffcgs_jax.synthesis.config import EnergyConfig
 
@@ -50,6 +51,7 @@ _TARGETS_BYTES = 1 << 29
 # id(grid) -> (grid, Target); each counts at least 1/8 of the bytes (so at most 8), one alone always fits
 _TARGETS = cachetools.LRUCache(_TARGETS_BYTES, getsizeof=lambda v: min(max(v[1].sdf.cells.nbytes, _TARGETS_BYTES // 8),
                                                                        _TARGETS_BYTES))
+compiled.register("synthesis.energy targets", _TARGETS)
 
 
 def make_target(grid: sdf.GradientSDF) -> Target:
@@ -123,8 +125,8 @@ def energy(
     if not cfg.normal_grad:  # the normals, and so the skin offsets along them, held where they are
         n = jax.lax.stop_gradient(n)
         c = centre + jax.lax.stop_gradient(c - centre)
-    W = quality.primitive_wrenches(c, n, target.centre, target.radius, cfg.mu, cfg.cone_edges)  # for E_g and E_m
-    E_g, ok, basis = quality.q_distance_warm(c, n, target.centre, target.radius, cfg.mu, cfg.cone_edges,
+    W = quality.primitive_wrenches(c, n, target.centre, target.radius, cfg.lp_friction, cfg.cone_edges)  # for E_g and E_m
+    E_g, ok, basis = quality.q_distance_warm(c, n, target.centre, target.radius, cfg.lp_friction, cfg.cone_edges,
                                              cfg.basis_size, cfg.lp_solver, cfg.lp_pivots, lp_basis, W=W)
     E_c = contact_energy(d, cfg.d0)
     E_q = joint_energy(hand, q)

@@ -14,7 +14,6 @@ import warnings
 from pathlib import Path
 from typing import NamedTuple
 
-import cachetools
 import jax
 import jax.numpy as jnp
 import mujoco
@@ -26,17 +25,19 @@ from jax.sharding import PartitionSpec as P
 from ffcgs_jax.core.config import check_all
 from ffcgs_jax.core.config import from_dict as config_from_dict
 from ffcgs_jax.core.errors import FfcgsError, check_grasp_set
-from ffcgs_jax.evaluation import device_metrics, metrics, ranking, score
+from ffcgs_jax.evaluation import device_metrics, metrics, ranking
+from ffcgs_jax.geometry import mesh_io
 from ffcgs_jax.geometry import sdf as sdf_mod
 from ffcgs_jax.hand import kinematics as K
 from ffcgs_jax.hand.kinematics import Hand
 from ffcgs_jax.hand.sites import palm_centre_root
-from ffcgs_jax.runtime import COMPILED_MAX, compile_clock, progress, traced_store
+from ffcgs_jax.runtime import compile_clock, compiled, progress, traced_store
 from ffcgs_jax.runtime import fetch, memory, sharding
 from ffcgs_jax.synthesis import grasp_io, prediction, samplers
 from ffcgs_jax.synthesis import filters as F
 from ffcgs_jax.synthesis.config import EnergyConfig, GraspConfig, OptimConfig
 from ffcgs_jax.synthesis.energy import Target, Terms, chosen, fingertip_contacts, make_target
+from ffcgs_jax.synthesis.grasp_set import GraspSet
 from ffcgs_jax.synthesis.optimize import OptResult, Trace, descend
 
 
@@ -105,23 +106,15 @@ def _descend_and_filter(hand: Hand, target: Target, poses: jax.Array, given_q: j
 
 
 device_mesh = sharding.device_mesh
-# key -> (executable, how it takes its arguments: `traced_store.lower`), the least recently used dropped past
-# COMPILED_MAX (each holds its code and, on a CPU, hundreds of the process's memory mappings)
-_COMPILED = cachetools.LRUCache(COMPILED_MAX)
+# key -> (executable, how it takes its arguments: `traced_store.lower`), kept in `runtime.compiled` under STAGE
+STAGE = "device_part"
 traced_store.register_outputs(DeviceOut, OptResult, Terms, Trace)
 
 
-def clear_compiled() -> None:
-    """Drop every executable the package holds compiled (the device part's, the evaluation's) and JAX's own caches:
-    their memory comes back, and the next call compiles again, or loads from the disk cache where it is on."""
-    _COMPILED.clear()
-    device_metrics.clear_compiled()
-    jax.clear_caches()
-
-
 def compiled_executables() -> list:
-    """The device part's executables this process holds, least recently used first (`clear_compiled` empties them)."""
-    return [compiled for compiled, _ in _COMPILED.values()]
+    """The device part's executables this process holds, in the order compiled (`fj.clear_compiled` empties
+    them)."""
+    return [executable for executable, _ in compiled.held(STAGE)]
 
 
 def compiled_device_part(hand: Hand, target: Target, key: jax.ShapeDtypeStruct, given, dcfg: DeviceConfig, n: int,
@@ -134,7 +127,8 @@ def compiled_device_part(hand: Hand, target: Target, key: jax.ShapeDtypeStruct, 
     (`traced_store`)."""
     shapes = jax.tree.map(lambda x: (x.shape, x.dtype), (target, key, given, given_q, sampler_params))
     k = (hand.spec, dcfg, n, str(shapes), sampler_res, jax.default_backend(), mesh)
-    if k not in _COMPILED:
+    kept = compiled.get(STAGE, k)
+    if kept is None:
         def part(hand, target, key, given, given_q, sampler_params, palm_root):
             return _device_part(hand, target, key, given, dcfg, n, given_q, sampler_params, sampler_res, mesh,
                                 palm_root)
@@ -147,41 +141,14 @@ def compiled_device_part(hand: Hand, target: Target, key: jax.ShapeDtypeStruct, 
         # host callbacks (the proxsuite LP) and programs over several devices cannot be stored
         storable = mesh.size == 1 and dcfg.energy.lp_solver != "proxsuite"
         with progress.compiling("the synthesis"):  # a minute or more on a CPU: the CLI says so while it runs
-            lowered, call = traced_store.lower("device_part", part, (hand, target, key, given, given_q,
-                                                                      sampler_params, palm_root),
-                                               (dcfg, n, sampler_res), storable)
-            compiled = lowered.compile()
+            lowered, call = traced_store.lower(STAGE, part, (hand, target, key, given, given_q, sampler_params,
+                                                             palm_root), (dcfg, n, sampler_res), storable)
+            executable = lowered.compile()
         # before anything is allocated: no out-of-memory traceback
-        memory.check_fits(compiled, n, mesh.devices.flat[0])
-        _COMPILED[k] = compiled, lambda compiled, *args: call(compiled, *args, palm_root)
-    return _COMPILED[k]
-
-
-@dataclasses.dataclass
-class GraspSet:
-    """Grasps of one object, host arrays; field meanings as in README's `grasps.npz` table."""
-
-    arrays: dict[str, np.ndarray]
-    trace: dict[str, np.ndarray]  # per-iteration E, E_g, E_c: (T+1, G)
-    config: GraspConfig
-    object_name: str
-
-    def __getitem__(self, key: str) -> np.ndarray:
-        return self.arrays[key]
-
-    def select(self, idx) -> "GraspSet":
-        """The grasps at `idx` (per-grasp arrays and trace columns; scalars kept)."""
-        n = len(self["valid"])
-        arrays = {k: (v[idx] if v.ndim and v.shape[0] == n and k not in ("channel_names", "joint_names") else v)
-                  for k, v in self.arrays.items()}
-        return GraspSet(arrays, {k: v[:, idx] for k, v in self.trace.items()}, self.config, self.object_name)
-
-    def order(self) -> np.ndarray:
-        """Grasp indices in the offered order (`evaluation.ranking.ranked`): those that passed the physics check
-        first when it ran (`physics.validate`), then valid ones, each group by decreasing predicted success
-        (`pred_success`, `GraspConfig.rank` "auto" or "predicted") or by increasing E ("energy", or no predictor
-        for the hand), ties by index: the same grasps give the same order."""
-        return ranking.ranked(self.arrays)
+        memory.check_fits(executable, n, mesh.devices.flat[0])
+        kept = executable, lambda executable, *args: call(executable, *args, palm_root)
+        compiled.put(STAGE, k, kept)
+    return kept
 
 
 # gs unannotated (here and in check_on_mesh): another type is refused with one FfcgsError line, not by a type checker
@@ -200,7 +167,7 @@ def load_grasps(path) -> GraspSet:
     cfg = GraspConfig()
     if "config_json" in arrays:
         try:
-            cfg = config_from_dict(GraspConfig, json.loads(str(arrays.pop("config_json"))))
+            cfg = config_from_dict(GraspConfig, json.loads(str(arrays.pop("config_json"))), say_renamed=False)
         except (FfcgsError, ValueError) as e:
             warnings.warn(f"{path}: its config does not parse here ({e}); GraspConfig's defaults stand in",
                           stacklevel=2)
@@ -270,10 +237,11 @@ def synthesize(hand: Hand, mesh: trimesh.Trimesh | sdf_mod.GradientSDF, cfg: Gra
         gs = finish(hand, target, cfg, out, evaluate, synthesis_s, object_name)
     on_the_way = every[0] - aot_device[0] - aot_eval[0]
     compile_total = compile_s + eval_compile_s + on_the_way
-    gs.arrays["compile_s"] = np.asarray(compile_total, np.float64)
-    gs.arrays["sdf_s"] = np.asarray(sdf_s, np.float64)
-    gs.arrays["total_s"] = np.asarray(time.perf_counter() - start - compile_total, np.float64)
-    return gs
+    # where the object came from, when `load_mesh` read it and it is unchanged since: a file saved from Python is
+    # then evaluated (`ffcgs eval`) without naming the object again
+    return gs.with_arrays(compile_s=np.asarray(compile_total, np.float64), sdf_s=np.asarray(sdf_s, np.float64),
+                          total_s=np.asarray(time.perf_counter() - start - compile_total, np.float64),
+                          **mesh_io.source_of(mesh))
 
 
 def compile_device(hand: Hand, target: Target, cfg: GraspConfig, given: jax.Array | None = None,
@@ -363,7 +331,6 @@ def finish(hand, target, cfg, out: DeviceOut, evaluate, synthesis_s, object_name
         "valid": valid,
         "synthesis_s": np.asarray(synthesis_s, np.float64),
     }
-    arrays["score"] = score.score(arrays)
     rank, predictor = prediction.resolve(cfg.rank, hand, cfg.evaluator)
     with compile_clock.compiling() as predictor_compile:  # a process's first prediction compiles: not call time
         if predictor is not None:
@@ -381,26 +348,28 @@ def _joint_names(spec) -> np.ndarray:
     return np.array([mujoco.mj_id2name(m, mujoco.mjtObj.mjOBJ_JOINT, j) for j in range(m.njnt)])
 
 
+compiled.register("synthesis.grasp joint names", _joint_names)
+
+
 def metrics_config(cfg: GraspConfig) -> metrics.MetricsConfig:
-    """The evaluation's settings, derived from the synthesis's: every `MetricsConfig` field is the `EnergyConfig` field
-    of its name (friction, cone, offsets, weights, basis), except `contact_tol`, which is the `GraspConfig`'s; so an
-    energy setting can never be evaluated under another value."""
-    fields = {f.name for f in dataclasses.fields(metrics.MetricsConfig)} - {"contact_tol"}
-    return metrics.MetricsConfig(**{name: getattr(cfg.energy, name) for name in fields}, contact_tol=cfg.contact_tol)
+    """The evaluation's settings, derived from the synthesis's (`MetricsConfig.from_energy`)."""
+    return metrics.MetricsConfig.from_energy(cfg.energy, cfg.contact_tol)
 
 
 def check_on_mesh(hand: Hand, mesh: trimesh.Trimesh, gs, grid: sdf_mod.GradientSDF) -> dict[str, np.ndarray]:
     """The grasps' contact and force-closure figures measured on another surface than the one they were filtered
     on (grasps planned from depth frames, checked on the true mesh): `epsilon_true`, `force_closure_true`,
     `contact_dist_true` and `n_contacts_true`, as `epsilon` ... `n_contacts` (torque origin and scale from `grid`,
-    as the synthesis)."""
+    as the synthesis); and where `mesh` came from when `load_mesh` read it (`object_source`, `object_scale`,
+    `object_sha256`: the object `ffcgs eval` then simulates). Add them with `gs.with_arrays(**figures)`."""
     check_grasp_set(gs, "check_on_mesh")
     target = make_target(grid)
     dtype = target.sdf.grid.dtype
     ev = device_metrics.evaluate(surface_of(mesh), jnp.asarray(gs["contacts"], dtype), jnp.asarray(gs["q"], dtype),
                                  hand.lower, hand.upper, target.centre, target.radius, metrics_config(gs.config))
     ev = fetch.device_get(ev)
-    return {f"{k}_true": np.asarray(ev[k]) for k in ("epsilon", "force_closure", "contact_dist", "n_contacts")}
+    return {f"{k}_true": np.asarray(ev[k]) for k in ("epsilon", "force_closure", "contact_dist", "n_contacts")} \
+        | mesh_io.source_of(mesh)
 
 
 def _first_prediction(gs: GraspSet) -> str:

@@ -10,29 +10,28 @@ E (the predictions are still computed and stored when a predictor exists). The c
 import contextlib
 from pathlib import Path
 
+import cachetools
 import jax.numpy as jnp
 import numpy as np
 
 from ffcgs_jax.core.errors import FfcgsError
 from ffcgs_jax.learning import evaluator
-from ffcgs_jax.learning.weights import load_evaluator, shipped_evaluator
-from ffcgs_jax.runtime import progress
+from ffcgs_jax.learning.weights import cached, load_evaluator, shipped_evaluator
+from ffcgs_jax.runtime import COMPILED_MAX, compiled, progress
 from ffcgs_jax.runtime.fixed_shapes import pad_rows
 from ffcgs_jax.synthesis.config import RANKS
 
 
 BUCKET = 32
-_LOADED: dict = {}
-_COMPILED: set = set()  # call signatures compiled in this process: only a new one gets the compile's ticker
+# call signatures compiled in this process, so that only a new one gets the compile's ticker; as many as the
+# executables kept, and emptied with them (a cleared signature only shows the ticker again)
+_SIGNATURES = cachetools.LRUCache(COMPILED_MAX)
+compiled.register("synthesis.prediction signatures", _SIGNATURES)
 
 
 def _load(path: str, hand) -> tuple[dict, dict]:
-    """Loaded once per file version and hand: a synthesis call must not re-read weights."""
-    key = (path, Path(path).stat().st_mtime_ns, hand.spec)
-    if key not in _LOADED:
-        _LOADED.clear() if len(_LOADED) > 8 else None
-        _LOADED[key] = load_evaluator(path, hand)
-    return _LOADED[key]
+    """Loaded once per file version and hand (`weights.cached`): a synthesis call must not re-read weights."""
+    return cached(path, ("evaluator", hand.spec), lambda: load_evaluator(path, hand))
 
 
 def weights_for(hand, path: str = "") -> tuple[dict, dict] | None:
@@ -70,8 +69,8 @@ def predictions(weights: dict, meta: dict, hand, sdf, arrays: dict) -> dict[str,
     m = -(-n // BUCKET) * BUCKET
     rows = [pad_rows(np.asarray(arrays[k]), m) for k in ("wrist_pose", "q", "contacts")] + [pad_rows(inputs, m)]
     signature = (m, str(dt), hand.spec, sdf.grid.shape, len(heads))
-    with progress.compiling("the success predictor") if signature not in _COMPILED else contextlib.nullcontext():
+    with progress.compiling("the success predictor") if signature not in _SIGNATURES else contextlib.nullcontext():
         p = evaluator.predict(weights, hand, sdf, *(jnp.asarray(r, dt) for r in rows))
-    _COMPILED.add(signature)
+    _SIGNATURES[signature] = True
     p = np.asarray(p, np.float64)[:n]
     return {"pred_success": p[:, -1]} | {f"pred_{h}": p[:, i] for i, h in enumerate(heads[:-1])}

@@ -14,7 +14,7 @@ jit-compiled function per n (n is static); calling `sample` inside an outer `jax
 
 import dataclasses
 from collections.abc import Callable
-from functools import lru_cache, partial
+from functools import partial
 from pathlib import Path
 from typing import NamedTuple
 
@@ -30,7 +30,7 @@ from ffcgs_jax.hand.kinematics import Hand
 from ffcgs_jax.hand.sites import default_standoff, palm_centre_root
 from ffcgs_jax.core.files import check_file
 from ffcgs_jax.learning import cvae
-from ffcgs_jax.learning.weights import load_weights, shipped_weights
+from ffcgs_jax.learning.weights import cached, load_weights, shipped_weights
 from ffcgs_jax.synthesis import filters as F
 from ffcgs_jax.runtime import sharding
 from ffcgs_jax.synthesis.config import SAMPLERS, SamplerConfig
@@ -359,26 +359,25 @@ def weights_path(hand: Hand, weights: str = "") -> Path:
     return path
 
 
-@lru_cache(maxsize=8)
-def _load(path: str, mtime: float, hand_name: str):
-    return load_weights(path, hand_name)
-
-
 def sampler_params(name: str, hand: Hand, cfg: SamplerConfig, dtype=None) -> tuple[dict | None, int | None]:
-    """(params, SDF resolution they expect) for the cvae sampler, loaded once per file (and cast to `dtype` once:
-    casting ~50 leaves per call cost a millisecond of dispatch); (None, None) otherwise."""
+    """(params, SDF resolution they expect) for the cvae sampler, loaded once per file version (`weights.cached`),
+    and cast to `dtype` once: casting ~50 leaves per call cost a millisecond of dispatch; (None, None) otherwise."""
     if name != "cvae":
         return None, None
     path = check_file(weights_path(hand, cfg.weights), "cvae weights file")
-    params, model = _load_cast(str(path), path.stat().st_mtime, hand.spec.name, None if dtype is None else
-                               np.dtype(dtype).name)
+    hand_name = hand.spec.name
+    loaded = lambda: load_weights(path, hand_name)  # noqa: E731
+    if dtype is None:
+        params, model = cached(path, ("cvae", hand_name), loaded)
+    else:
+        dt = np.dtype(dtype).name
+
+        def cast():
+            params, model = cached(path, ("cvae", hand_name), loaded)
+            return jax.tree.map(lambda x: x.astype(dt), params), model
+
+        params, model = cached(path, ("cvae", hand_name, dt), cast)
     return params, model.res
-
-
-@lru_cache(maxsize=8)
-def _load_cast(path: str, mtime: float, hand_name: str, dtype: str | None):
-    params, model = _load(path, mtime, hand_name)
-    return (params if dtype is None else jax.tree.map(lambda x: x.astype(dtype), params)), model
 
 
 def _check_sdf(sdf: GradientSDF) -> None:

@@ -1,4 +1,5 @@
-"""Training the success predictor: `ffcgs train --model evaluator` (one run, `--cv.all`, `--sweep`).
+"""Training the success predictor, a task of `training.harness`: `ffcgs train --model evaluator` (one run,
+`--cv.all`, `--sweep`). Here: its loss, its compiled epoch of AdamW steps, its figures and the weights it exports.
 
 Outputs in `cfg.out`, as the sampler's training writes them:
     config.toml       the resolved config
@@ -15,34 +16,29 @@ Batch order comes from (seed, epoch), so a resumed run computes the same paramet
 import dataclasses
 import json
 import math
-import time
 from collections.abc import Callable
-from contextlib import nullcontext
 from functools import partial
 from pathlib import Path
 
 import jax
 import jax.numpy as jnp
 import numpy as np
-from tqdm import tqdm
 
 from ffcgs_jax.core import files
 from ffcgs_jax.core.config import check_all
 from ffcgs_jax.core.errors import FfcgsError
+from ffcgs_jax.core.version import __version__
 from ffcgs_jax.evaluation import rank_metrics
 from ffcgs_jax.hand import kinematics as K
+from ffcgs_jax.kernels.adam import AdamState, adam_update
 from ffcgs_jax.learning import checkpoint, evaluator
 from ffcgs_jax.learning import layers as nn
-from ffcgs_jax.training import data as cvae_data
-from ffcgs_jax.training import evaluator_data
-from ffcgs_jax.learning.config import EvaluatorOptimConfig, EvaluatorTrainConfig, to_toml
-from ffcgs_jax.training.train import dataset_hand, run_folder, truncate_log
 from ffcgs_jax.learning.weights import EVALUATOR_FORMAT
 from ffcgs_jax.runtime.fixed_shapes import pad_rows
-from ffcgs_jax.runtime.progress import compiling
-from ffcgs_jax.kernels.adam import AdamState, adam_init, adam_update
-from ffcgs_jax.core.version import __version__
-
+from ffcgs_jax.training import data as cvae_data
+from ffcgs_jax.training import evaluator_data, harness
+from ffcgs_jax.training.config import EvaluatorOptimConfig, EvaluatorTrainConfig, to_toml
+from ffcgs_jax.training.run import dataset_hand, read_metrics, run_folder
 
 def loss_fn(net, norm, x, y):
     return jnp.mean(evaluator.bce(evaluator.logits(net, norm, x), y))
@@ -115,7 +111,7 @@ def train(cfg: EvaluatorTrainConfig, progress: bool = True, until_epoch: int | N
     if not isinstance(cfg, EvaluatorTrainConfig):
         raise FfcgsError(f"train takes an EvaluatorTrainConfig, got {type(cfg).__name__}")
     check_all(cfg)
-    out, text, cfg_path, ckpt_path, log_path = run_folder(cfg)
+    run = run_folder(cfg, " --model evaluator")  # the sampler's parser refuses the evaluator's [net] section
     # data handed in (cross-validation folds, tests) comes with its hand named in cfg.hand: no file to ask
     hand = K.load_hand(cfg.hand if data is not None and cfg.hand else dataset_hand(cfg.data.path, cfg.hand))
     if data is None:
@@ -127,78 +123,72 @@ def train(cfg: EvaluatorTrainConfig, progress: bool = True, until_epoch: int | N
         fold = cvae_data.fold_of(objects, cfg.cv.folds, cfg.seed)
         held = np.array([fold[o] == cfg.cv.fold for o in objects.tolist()])
         train_rows, val_rows = np.flatnonzero(~held), np.flatnonzero(held)
+    task = evaluator_task(cfg, data, train_rows, val_rows)
+    fitted = harness.fit(task, run, until_epoch=until_epoch, progress=progress)
+    if fitted is None:
+        return None
+    weights = {"net": fitted.params, "norm": fitted.consts["norm"]}
+    train_fig = figures(predict_rows(weights, data.x[train_rows]), data, train_rows)
+    row = fitted.last_row or {}
+    last = {k[len("val_"):]: v for k, v in row.items() if k.startswith("val_") and k != "val_loss"}
+    if len(val_rows) and not last:
+        last = figures(predict_rows(weights, data.x[val_rows]), data, val_rows)
+    summary = {"heads": list(data.heads), "train_grasps": int(len(train_rows)), "val_grasps": int(len(val_rows)),
+               "train_objects": len(set(objects[train_rows].tolist())),
+               "val_objects": sorted(set(objects[val_rows].tolist())), "steps": task.steps_per_epoch * task.epochs,
+               "params": nn.num_params(weights["net"]), "backend": jax.default_backend(),
+               **{f"train_{k}": v for k, v in train_fig.items()}, **{f"val_{k}": v for k, v in last.items()}}
+    checkpoint.save(run.out / "weights.npz", weights,
+                    weights_meta(cfg, hand.spec.name, data.heads, data.x.shape[1],
+                                 {k: summary[k] for k in ("train_grasps", "train_objects", "steps")}))
+    files.write_text(run.out / "summary.json", json.dumps(summary, indent=1, default=float))
+    plot_metrics(run.log, run.out / "metrics.png", weights, data, val_rows if len(val_rows) else train_rows)
+    return summary
+
+
+def evaluator_task(cfg: EvaluatorTrainConfig, data: evaluator_data.LabelData, train_rows: np.ndarray,
+                   val_rows: np.ndarray) -> harness.Task:
+    """The predictor's training as a harness task: one compiled call per epoch, the standardiser of the training
+    rows saved beside the network, the held-out figures per epoch."""
     o = cfg.optim
     steps = len(train_rows) // o.batch
     if steps == 0:
         raise FfcgsError(f"the training set has {len(train_rows)} grasps, fewer than one batch ({o.batch})")
     total = steps * o.epochs
-    tree, meta = checkpoint.load(ckpt_path) if ckpt_path.is_file() else (None, None)
-    files.check_folder(out, "--out")
-    files.write_text(cfg_path, text)
-
-    norm = evaluator.standardiser(data.x[train_rows])
-    net = evaluator.init(jax.random.key(cfg.seed), data.x.shape[1], len(data.heads), cfg.net.hidden, cfg.net.depth)
-    opt = adam_init(net)
-    start = 0
-    if tree is not None:
-        net, norm = tree["net"], tree["norm"]
-        opt = AdamState(tree["opt"]["count"], tree["opt"]["mu"], tree["opt"]["nu"])
-        start = int(meta["epoch"])
-        truncate_log(log_path, start * steps)
-    elif log_path.exists():
-        log_path.unlink()
-    net, opt, norm = jax.tree.map(jnp.asarray, (net, opt, norm))
     x, y = jnp.asarray(data.x), jnp.asarray(data.y)
-    last = {}
-    # drawn from its first update on (`delay`): before it, the first epoch's compile has its own line
-    bar = tqdm(total=o.epochs, initial=start, desc=f"train {out.name}", unit="epoch", disable=not progress,
-               dynamic_ncols=True, delay=1e-3)
-    t0 = time.perf_counter()
-    with open(log_path, "a") as log:
-        for epoch in range(start, o.epochs if until_epoch is None else min(until_epoch, o.epochs)):
-            rng = np.random.default_rng([cfg.seed, epoch])
-            idx = train_rows[rng.permutation(len(train_rows))[: steps * o.batch]].reshape(steps, o.batch)
-            # the first call compiles: a ticker says so; later epochs only dispatch
-            with compiling("the predictor's training step", show=progress) if epoch == start else nullcontext():
-                net, opt, losses = train_steps(net, opt, norm, x, y, jnp.asarray(idx), jnp.asarray(epoch * steps),
-                                               jnp.asarray(total), optim=o)
-            losses = np.asarray(losses)
-            if not np.isfinite(losses).all():
-                raise FfcgsError(f"the loss became non-finite in epoch {epoch}; lower optim.lr")
-            row = {"epoch": epoch + 1, "step": (epoch + 1) * steps, "loss": float(losses.mean()),
-                   "elapsed_s": time.perf_counter() - t0}
-            if len(val_rows):
-                w = {"net": net, "norm": norm}
-                zv = logit_rows(w, data.x[val_rows])
-                row["val_loss"] = float(jnp.mean(evaluator.bce(jnp.asarray(zv), jnp.asarray(data.y[val_rows]))))
-                last = figures(np.exp(-np.logaddexp(0.0, -zv)), data, val_rows)
-                row |= {f"val_{k}": v for k, v in last.items()}
-            log.write(json.dumps(row) + "\n")
-            log.flush()
-            checkpoint.save(ckpt_path, {"net": net, "norm": norm,
-                                        "opt": {"count": opt.count, "mu": opt.mu, "nu": opt.nu}},
-                            {"epoch": epoch + 1, "config": text})
-            bar.update(1)
-            bar.set_postfix(loss=f"{row['loss']:.4f}",
-                            **({"val_within": f"{row['val_within_auc_valid']:.3f}"} if len(val_rows) else {}))
-    bar.close()
-    if until_epoch is not None and until_epoch < o.epochs:
-        return None
-    weights = {"net": net, "norm": norm}
-    train_fig = figures(predict_rows(weights, data.x[train_rows]), data, train_rows)
-    if len(val_rows) and not last:
-        last = figures(predict_rows(weights, data.x[val_rows]), data, val_rows)
-    summary = {"heads": list(data.heads), "train_grasps": int(len(train_rows)), "val_grasps": int(len(val_rows)),
-               "train_objects": len(set(objects[train_rows].tolist())),
-               "val_objects": sorted(set(objects[val_rows].tolist())), "steps": total,
-               "params": nn.num_params(net), "backend": jax.default_backend(),
-               **{f"train_{k}": v for k, v in train_fig.items()}, **{f"val_{k}": v for k, v in last.items()}}
-    checkpoint.save(out / "weights.npz", weights,
-                    weights_meta(cfg, hand.spec.name, data.heads, data.x.shape[1],
-                                 {k: summary[k] for k in ("train_grasps", "train_objects", "steps")}))
-    files.write_text(out / "summary.json", json.dumps(summary, indent=1, default=float))
-    plot_metrics(log_path, out / "metrics.png", weights, data, val_rows if len(val_rows) else train_rows)
-    return summary
+
+    def init():
+        net = evaluator.init(jax.random.key(cfg.seed), data.x.shape[1], len(data.heads), cfg.net.hidden, cfg.net.depth)
+        return net, {"norm": evaluator.standardiser(data.x[train_rows])}
+
+    def chunks(epoch):
+        rng = np.random.default_rng([cfg.seed, epoch])
+        idx = train_rows[rng.permutation(len(train_rows))[: steps * o.batch]].reshape(steps, o.batch)
+        yield harness.Chunk(0, steps, jnp.asarray(idx))
+
+    def step(net, opt, consts, step0, idx):
+        net, opt, losses = train_steps(net, opt, consts["norm"], x, y, idx, jnp.asarray(step0), jnp.asarray(total),
+                                       optim=o)
+        return net, opt, {"loss": losses}
+
+    def validate(net, consts):
+        if not len(val_rows):
+            return {}
+        zv = logit_rows({"net": net, "norm": consts["norm"]}, data.x[val_rows])
+        row = {"val_loss": float(jnp.mean(evaluator.bce(jnp.asarray(zv), jnp.asarray(data.y[val_rows]))))}
+        return row | {f"val_{k}": v for k, v in figures(np.exp(-np.logaddexp(0.0, -zv)), data, val_rows).items()}
+
+    def postfix(m, row):
+        if row is None:
+            return {}
+        return {"loss": f"{row['loss']:.4f}"} | ({"val_within": f"{row['val_within_auc_valid']:.3f}"}
+                                                  if len(val_rows) else {})
+
+    return harness.Task(
+        name="evaluator", step_name="the predictor's training step", seed=cfg.seed, epochs=o.epochs,
+        steps_per_epoch=steps, init=init, chunks=chunks, step=step, evaluate=validate, epoch_means=("loss",),
+        nonfinite_hint="lower optim.lr", postfix=postfix,
+        legacy=lambda tree: (tree["net"], {"norm": tree["norm"]}) if {"net", "norm"} <= set(tree) else None)
 
 
 def plot_metrics(log_path: Path, png: Path, weights, data, rows) -> Path | None:
@@ -211,7 +201,7 @@ def plot_metrics(log_path: Path, png: Path, weights, data, rows) -> Path | None:
     except ImportError:
         print(f"matplotlib is not installed: {png} not drawn (pip install 'ffcgs-jax[train]')")
         return None
-    epochs = [json.loads(line) for line in Path(log_path).read_text().splitlines() if line]
+    epochs = read_metrics(log_path)
     fig, ax = plt.subplots(1, 3, figsize=(13, 3.6))
     e = [r["epoch"] for r in epochs]
     ax[0].plot(e, [r["loss"] for r in epochs], label="train")

@@ -1,11 +1,12 @@
-"""Training the CVAE: a compiled multi-step Adam update, validation, checkpoints, resumption and metric logs.
+"""Training the CVAE, a task of `training.harness`: its loss, its compiled multi-step Adam update, its batches,
+validation and the weights it exports.
 
-`train(cfg)` is what `python -m train.sampler` runs for one configuration. Outputs in `cfg.out`:
+`train(cfg)` is what `ffcgs train` runs for one configuration. Outputs in `cfg.out`:
     config.toml       the resolved config (reload it with --config to repeat the run)
     metrics.jsonl     one line per `log_every` steps (loss, reconstruction in m, KL, beta) and one per epoch
                       (validation reconstruction and KL when a fold is held out)
     metrics.png       the curves
-    checkpoint.npz    params, Adam state and the epoch reached, written at the end of every epoch
+    checkpoint.npz    params, Adam state and the epoch reached, written at the end of every epoch (the harness's)
     weights.npz       the trained params with the model config: what `synthesis.samplers.make_sampler("cvae")` loads
 
 Resumption: a run whose folder already has a checkpoint for the same config continues after the last finished
@@ -15,29 +16,26 @@ same parameters as an uninterrupted one.
 
 import dataclasses
 import json
-import time
-from contextlib import nullcontext
 from functools import partial
 from pathlib import Path
 
 import jax
 import jax.numpy as jnp
 import numpy as np
-from tqdm import tqdm
 
 from ffcgs_jax.core import files
 from ffcgs_jax.core.config import check_all
-from ffcgs_jax.core.version import __version__
 from ffcgs_jax.core.errors import FfcgsError
+from ffcgs_jax.core.version import __version__
 from ffcgs_jax.hand import kinematics as K
 from ffcgs_jax.hand import sites
+from ffcgs_jax.kernels.adam import AdamState, adam_update
 from ffcgs_jax.learning import checkpoint, cvae
-from ffcgs_jax.training import data as cvae_data
-from ffcgs_jax.learning.config import KLConfig, TrainConfig, TrainOptimConfig, to_toml
 from ffcgs_jax.learning.weights import WEIGHTS_FORMAT
-from ffcgs_jax.runtime.progress import compiling
-from ffcgs_jax.kernels.adam import AdamState, adam_init, adam_update
-
+from ffcgs_jax.training import data as cvae_data
+from ffcgs_jax.training import harness
+from ffcgs_jax.training.config import KLConfig, TrainConfig, TrainOptimConfig, to_toml
+from ffcgs_jax.training.run import dataset_hand, read_metrics as read_rows, run_folder
 
 def hand_points(hand_name: str) -> tuple[np.ndarray, np.ndarray, str]:
     """(palm centre (3,), palm tetrahedron (4, 3)) in the hand's root frame, float32, and the hand's full name."""
@@ -137,73 +135,10 @@ def evaluate(params, data: cvae_data.TrainData, records: np.ndarray, palm_root, 
     return {"rec": float(rec.mean()), "kl": float(kl.mean()), "grasps": int(len(sel))}
 
 
-def dataset_hand(path: str, hand: str = "") -> str:
-    """The hand a dataset file was built for (its build config's `hand`; the SVH for files that predate the field),
-    or `hand` after checking that it is the same hand."""
-    from ffcgs_jax.dataset import mcap_io
-    from ffcgs_jax.hand.spec import load_spec
-
-    built = ((mcap_io.read_config(path).get("config") or {}).get("hand") or "svh")
-    if hand and load_spec(hand).name != load_spec(built).name:
-        raise FfcgsError(f"{path} was built for hand {built!r}, not {hand!r}: train on a dataset of that hand "
-                         "(ffcgs dataset build --hand ...)")
-    return hand or built
-
-
 def weights_meta(cfg: TrainConfig, hand: str, extra: dict) -> dict:
     """The metadata saved beside trained weights: format, version, hand, model config and training config."""
     return {"format": WEIGHTS_FORMAT, "version": __version__, "hand": hand, "model": dataclasses.asdict(cfg.model),
             "train": {"config": to_toml(cfg)} | extra}
-
-
-RUN_CONFIG_MARK = "# written by ffcgs train: the resolved config of the run in this folder"
-"""The first line of the config.toml a run writes: `ffcgs train --out` rewrites only a config.toml that begins with
-it (or that stands beside a checkpoint: runs of older versions), never a config the user put there."""
-
-
-def run_folder(cfg) -> tuple[Path, str, Path, Path, Path]:
-    """(out folder, the config as TOML, its config.toml, checkpoint.npz and metrics.jsonl) of a training run,
-    once `check_run_folder` allows the run there. Shared by every `ffcgs train` model."""
-    out = Path(cfg.out).expanduser()
-    text = f"{RUN_CONFIG_MARK} (train --config it to repeat the run)\n{to_toml(cfg)}"
-    cfg_path, ckpt_path, log_path = out / "config.toml", out / "checkpoint.npz", out / "metrics.jsonl"
-    # the advice to resume names the model: the sampler's parser refuses the evaluator's [net] section
-    check_run_folder(out, cfg_path, ckpt_path, text, "" if isinstance(cfg, TrainConfig) else " --model evaluator")
-    return out, text, cfg_path, ckpt_path, log_path
-
-
-def check_run_folder(out: Path, cfg_path: Path, ckpt_path: Path, text: str, model_flag: str = "") -> None:
-    """`out` may be new, empty, or this configuration's run (resumed); a file, another configuration's run, or a
-    folder of other files is refused before anything is written."""
-    if out.exists() and not out.is_dir():
-        raise FfcgsError(f"--out {out} is a file, not a folder: a training run writes a folder (config.toml, "
-                         "checkpoint.npz, weights.npz, ...)")
-    old = _read_config(cfg_path)
-    if old is not None and not old.startswith(RUN_CONFIG_MARK) and not ckpt_path.is_file():
-        raise FfcgsError(f"--out {out} holds a config.toml that no ffcgs train run wrote ({cfg_path}), which a run "
-                         f"would replace with its own; choose another --out (to train from that config: `ffcgs "
-                         f"train{model_flag} --config {cfg_path} --out NEW`)")
-    if ckpt_path.is_file() and old is not None and _body(old) != _body(text):
-        raise FfcgsError(f"{out} holds a run with a different config ({cfg_path}); resume it with `ffcgs "
-                         f"train{model_flag} --config {cfg_path}` or choose another --out")
-    if out.is_dir() and not cfg_path.is_file() and any(p.is_file() for p in out.iterdir()):
-        raise FfcgsError(f"--out {out} holds files but no training run (no config.toml); choose a new or empty "
-                         "folder")
-
-
-def _read_config(path: Path) -> str | None:
-    if not path.is_file():
-        return None
-    try:
-        return path.read_text()
-    except (OSError, UnicodeDecodeError):
-        return ""  # unreadable: no run's config, refused as such
-
-
-def _body(config_text: str) -> str:
-    """A run's config.toml without its first line (`RUN_CONFIG_MARK`), to compare with one of an older version."""
-    first, _, rest = config_text.partition("\n")
-    return rest if first.startswith(RUN_CONFIG_MARK) else config_text
 
 
 def train(cfg: TrainConfig, hand: str | None = None, progress: bool = True, until_epoch: int | None = None,
@@ -219,7 +154,7 @@ def train(cfg: TrainConfig, hand: str | None = None, progress: bool = True, unti
     if not isinstance(cfg, TrainConfig):
         raise FfcgsError(f"train takes a TrainConfig, got {type(cfg).__name__}")
     check_all(cfg)
-    out, text, cfg_path, ckpt_path, log_path = run_folder(cfg)
+    run = run_folder(cfg)
     # Everything that can refuse the run comes before its first write: a failed start leaves an existing run (and
     # a new --out) exactly as it was.
     if data is None:
@@ -229,105 +164,78 @@ def train(cfg: TrainConfig, hand: str | None = None, progress: bool = True, unti
     train_recs, val_recs = cvae_data.split(data, cfg.cv.folds, cfg.cv.fold, cfg.seed)
     palm_root, tet_root, hand_name = hand_points(dataset_hand(cfg.data.path, hand or cfg.hand))
     palm_root, tet_root = jnp.asarray(palm_root), jnp.asarray(tet_root)
+    grids = (jnp.asarray(data.grids), jnp.asarray(data.origin), jnp.asarray(data.voxel_size))
+    task = cvae_task(cfg, data, train_recs, val_recs, grids, palm_root, tet_root)
+    fitted = harness.fit(task, run, until_epoch=until_epoch, progress=progress)
+    if fitted is None:
+        return None
+
+    params = fitted.params
+    train_eval = evaluate(params, data, train_recs, palm_root, tet_root, grids)
+    row = fitted.last_row
+    last_val = {"rec": row["val_rec"], "kl": row["val_kl"]} if row is not None and "val_rec" in row else None
+    if len(val_recs) and last_val is None:
+        last_val = evaluate(params, data, val_recs, palm_root, tet_root, grids)
+    summary = {
+        "train_rec": train_eval["rec"], "train_kl": train_eval["kl"],
+        "val_rec": None if last_val is None else last_val["rec"],
+        "val_kl": None if last_val is None else last_val["kl"],
+        "train_objects": sorted(set(data.objects[train_recs].tolist())),
+        "val_objects": sorted(set(data.objects[val_recs].tolist())),
+        "train_grasps": int(len(data.grasps_of(train_recs))), "steps": task.steps_per_epoch * task.epochs,
+        "backend": jax.default_backend(),
+    }
+    checkpoint.save(run.out / "weights.npz", {"params": params},
+                    weights_meta(cfg, hand_name, {k: summary[k] for k in ("train_rec", "val_rec", "steps")}))
+    files.write_text(run.out / "summary.json", json.dumps(summary, indent=1))
+    plot_metrics(run.log, run.out / "metrics.png")
+    return summary
+
+
+def cvae_task(cfg: TrainConfig, data: cvae_data.TrainData, train_recs, val_recs, grids, palm_root,
+              tet_root) -> harness.Task:
+    """The CVAE's training as a harness task: `steps_per_call` steps per compiled call, validation per epoch."""
     o, k = cfg.optim, cfg.data.grasps_per_sdf
     steps_per_epoch = cvae_data.steps_per_epoch(data, train_recs, o.batch, k)
-    total = steps_per_epoch * o.epochs
-    tree, meta = checkpoint.load(ckpt_path) if ckpt_path.is_file() else (None, None)
-    files.check_folder(out, "--out")
-    files.write_text(cfg_path, text)
-
-    params = cvae.init(jax.random.key(cfg.seed), cfg.model)
-    opt = adam_init(params)
-    start_epoch = 0
-    if tree is not None:
-        params, opt = tree["params"], AdamState(tree["opt"]["count"], tree["opt"]["mu"], tree["opt"]["nu"])
-        params, opt = jax.tree.map(jnp.asarray, (params, opt))
-        start_epoch = int(meta["epoch"])
-        truncate_log(log_path, start_epoch * steps_per_epoch)
-    elif log_path.exists():
-        log_path.unlink()
-
-    grids = (jnp.asarray(data.grids), jnp.asarray(data.origin), jnp.asarray(data.voxel_size))
+    total = jnp.asarray(steps_per_epoch * o.epochs, jnp.int32)
     pose = jnp.asarray(data.pose)
     # always `steps_per_call` steps per call, the ones past the epoch's end masked off (`live`): an executable's
     # shapes then do not depend on the dataset's size, so the folds of a cross-validation, a sweep's points and a
     # resumed run share one compile instead of one each (minutes on a CPU)
     chunk = cfg.steps_per_call
-    t_start = time.perf_counter()
-    # drawn from its first update on (`delay`): before it, the first step's compile has its own line
-    bar = tqdm(total=total, initial=start_epoch * steps_per_epoch, desc=f"train {out.name}", unit="step",
-               disable=not progress, dynamic_ncols=True, delay=1e-3)
-    last_val = None
-    first_step = start_epoch * steps_per_epoch
-    with open(log_path, "a") as log:
-        for epoch in range(start_epoch, o.epochs if until_epoch is None else min(until_epoch, o.epochs)):
-            rng = np.random.default_rng([cfg.seed, epoch])
-            rec_idx, grasp_idx = cvae_data.epoch_batches(data, train_recs, o.batch, k, rng)
-            step = epoch * steps_per_epoch
-            acc: dict[str, list] = {}
-            for s in range(0, steps_per_epoch, chunk):
-                n = min(chunk, steps_per_epoch - s)
-                sel = np.arange(s, s + chunk) % steps_per_epoch  # the padding steps are masked off
-                # the first call compiles (minutes on a small CPU): a ticker says so; later calls only dispatch
-                with compiling("the CVAE's training step", show=progress) if step + s == first_step else nullcontext():
-                    params, opt, m = train_steps(
-                        params, opt, jnp.asarray(step + s, jnp.int32), jnp.asarray(np.arange(chunk) < n), *grids,
-                        pose, jnp.asarray(rec_idx[sel]), jnp.asarray(grasp_idx[sel]), palm_root, tet_root,
-                        jnp.asarray(cfg.seed, jnp.int32), jnp.asarray(total, jnp.int32), optim=o, kl=cfg.kl)
-                m = {key: np.asarray(v)[:n] for key, v in m.items()}
-                if not np.isfinite(m["loss"]).all():
-                    raise FfcgsError(f"the loss became non-finite at step {step + s} (epoch {epoch}); lower "
-                                     f"optim.lr or set optim.grad_clip")
-                for i in range(n):
-                    for key, v in m.items():
-                        acc.setdefault(key, []).append(float(v[i]))
-                    gstep = step + s + i + 1
-                    if gstep % cfg.log_every == 0 or gstep == step + steps_per_epoch:
-                        log.write(json.dumps({"step": gstep, "epoch": epoch} |
-                                             {key: float(np.mean(v)) for key, v in acc.items()}) + "\n")
-                        acc = {}
-                bar.update(n)
-                bar.set_postfix(rec_cm=f"{100 * float(m['rec'][-1]):.2f}", kl=f"{float(m['kl'][-1]):.2f}")
-            row = {"epoch": epoch + 1, "step": (epoch + 1) * steps_per_epoch, "elapsed_s": time.perf_counter() - t_start}
-            if len(val_recs):
-                last_val = evaluate(params, data, val_recs, palm_root, tet_root, grids)
-                row |= {"val_rec": last_val["rec"], "val_kl": last_val["kl"]}
-            log.write(json.dumps(row) + "\n")
-            log.flush()
-            checkpoint.save(ckpt_path, {"params": params, "opt": {"count": opt.count, "mu": opt.mu, "nu": opt.nu}},
-                            {"epoch": epoch + 1, "config": text})
-    bar.close()
-    if until_epoch is not None and until_epoch < o.epochs:
-        return None
 
-    train_eval = evaluate(params, data, train_recs, palm_root, tet_root, grids)
-    if len(val_recs) and last_val is None:
-        last_val = evaluate(params, data, val_recs, palm_root, tet_root, grids)
-    summary = {
-        "train_rec": train_eval["rec"], "train_kl": train_eval["kl"],
-        "val_rec": None if last_val is None else last_val["rec"], "val_kl": None if last_val is None else last_val["kl"],
-        "train_objects": sorted(set(data.objects[train_recs].tolist())),
-        "val_objects": sorted(set(data.objects[val_recs].tolist())),
-        "train_grasps": int(len(data.grasps_of(train_recs))), "steps": total, "backend": jax.default_backend(),
-    }
-    checkpoint.save(out / "weights.npz", {"params": params},
-                    weights_meta(cfg, hand_name, {k: summary[k] for k in ("train_rec", "val_rec", "steps")}))
-    files.write_text(out / "summary.json", json.dumps(summary, indent=1))
-    plot_metrics(log_path, out / "metrics.png")
-    return summary
+    def chunks(epoch):
+        rec_idx, grasp_idx = cvae_data.epoch_batches(data, train_recs, o.batch, k,
+                                                     np.random.default_rng([cfg.seed, epoch]))
+        for s in range(0, steps_per_epoch, chunk):
+            n = min(chunk, steps_per_epoch - s)
+            sel = np.arange(s, s + chunk) % steps_per_epoch  # the padding steps are masked off
+            yield harness.Chunk(s, n, (jnp.asarray(np.arange(chunk) < n), jnp.asarray(rec_idx[sel]),
+                                       jnp.asarray(grasp_idx[sel])))
 
+    def step(params, opt, consts, step0, inputs):
+        live, rec_idx, grasp_idx = inputs
+        return train_steps(params, opt, jnp.asarray(step0, jnp.int32), live, *grids, pose, rec_idx, grasp_idx,
+                           palm_root, tet_root, jnp.asarray(cfg.seed, jnp.int32), total, optim=o, kl=cfg.kl)
 
-def truncate_log(path: Path, step: int) -> None:
-    """Drop log lines past `step` (written after the checkpoint a resumed run restarts from)."""
-    if not path.exists():
-        return
-    keep = [line for line in path.read_text().splitlines() if line and json.loads(line)["step"] <= step]
-    files.write_text(path, "".join(line + "\n" for line in keep))
+    def validate(params, consts):
+        if not len(val_recs):
+            return {}
+        val = evaluate(params, data, val_recs, palm_root, tet_root, grids)
+        return {"val_rec": val["rec"], "val_kl": val["kl"]}
+
+    return harness.Task(
+        name="sampler", step_name="the CVAE's training step", seed=cfg.seed, epochs=o.epochs,
+        steps_per_epoch=steps_per_epoch, init=lambda: (cvae.init(jax.random.key(cfg.seed), cfg.model), {}),
+        chunks=chunks, step=step, evaluate=validate, log_every=cfg.log_every,
+        nonfinite_hint="lower optim.lr or set optim.grad_clip",
+        postfix=lambda m, row: {"rec_cm": f"{100 * float(m['rec'][-1]):.2f}", "kl": f"{float(m['kl'][-1]):.2f}"},
+        legacy=lambda tree: (tree["params"], {}) if "params" in tree else None)
 
 
 def read_metrics(path: str | Path) -> tuple[list[dict], list[dict]]:
     """(step rows, epoch rows) of a metrics.jsonl."""
-    rows = [json.loads(line) for line in Path(path).read_text().splitlines() if line]
+    rows = read_rows(path)
     return [r for r in rows if "loss" in r], [r for r in rows if "loss" not in r]
 
 

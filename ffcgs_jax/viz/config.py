@@ -1,9 +1,11 @@
 """Pictures: `RenderConfig`."""
 
 import dataclasses
+from typing import Literal
 
-from ffcgs_jax.core.config import check_integer
-from ffcgs_jax.core.errors import FfcgsError
+from ffcgs_jax.core.config import check_choice, check_integer
+
+RenderBackend = Literal["auto", "mujoco", "software"]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -18,10 +20,9 @@ class RenderConfig:
 
     width: int = 480
     height: int = 480
-    backend: str = "auto"
+    backend: RenderBackend = "auto"
 
     def check(self) -> None:
         check_integer("render.width", self.width, 64, 4096)
         check_integer("render.height", self.height, 64, 4096)
-        if self.backend not in ("auto", "mujoco", "software"):
-            raise FfcgsError(f"render.backend must be one of auto, mujoco, software; got {self.backend!r}")
+        check_choice("render.backend", self.backend, RenderBackend)

@@ -29,45 +29,31 @@ from PIL import Image, ImageDraw, ImageFont
 from ffcgs_jax.core import files
 from ffcgs_jax.core.errors import FfcgsError
 from ffcgs_jax.physics import backend as physics_backend
-from ffcgs_jax.physics import dexgraspbench as dgb
 from ffcgs_jax.physics import protocols as physics_protocols
-from ffcgs_jax.physics.config import ALL_PROTOCOLS, PhysicsConfig
+from ffcgs_jax.physics.config import PhysicsConfig
 from ffcgs_jax.physics.scene import PhysicsScene
 from ffcgs_jax.viz import render
 
 FORMATS = (".gif", ".mp4")
 # Per format: fps, width, height. A GIF of the whole lift-shake (~26 s simulated) stays a few MB at these.
 DEFAULTS = {".gif": (15.0, 320, 240), ".mp4": (30.0, 480, 360)}
-DIRECTION_NAMES = ("+x", "-x", "+y", "-y", "+z", "-z")  # protocols.DIRECTIONS, in order
+DIRECTION_NAMES = physics_protocols.DIRECTION_NAMES  # protocols.DIRECTIONS, in order
 _LABEL_INK, _LABEL_BOX = (30, 30, 38), (255, 255, 255, 170)
 _RESTART = mujoco.mjtState.mjSTATE_INTEGRATION  # everything a step reads: the push restarts exactly
 
 
 def phases(scene: PhysicsScene, batch: physics_backend.Batch, cfg: PhysicsConfig, protocol: str
            ) -> list[tuple[str, physics_backend.Segment, bool]]:
-    """The protocol as (label, segment, starts again from the closed state) in order."""
-    if protocol not in ALL_PROTOCOLS:
-        raise FfcgsError(f"unknown protocol {protocol!r}; protocols: {', '.join(ALL_PROTOCOLS)}")
-    if dgb.is_bench(protocol):
-        cfg = dgb.config(cfg, protocol)
-        grasp, squeeze = physics_protocols.grasp_and_squeeze(batch, cfg)
-        return [("grasp", grasp, False), ("squeeze", squeeze, False)] + [
-            (f"push {name}", physics_protocols.bench_push(batch, cfg, direction, scene.mass), True)
-            for name, direction in zip(DIRECTION_NAMES, physics_protocols.DIRECTIONS, strict=True)]
-    close, settle = physics_protocols.closing(batch, cfg)
-    out = [("closing", close, False), ("settle", settle, False)]
-    if protocol == "lift-shake":
-        segs = physics_protocols.lift_shake(batch, cfg)  # lift, hold, then shake unless shake_cycles is 0
-        return out + [(name, seg, False) for name, seg in zip(("lift", "hold", "shake"), segs, strict=False)]
-    for name, direction in zip(DIRECTION_NAMES, physics_protocols.DIRECTIONS, strict=True):
-        out.append((f"push {name}", physics_protocols.push(batch, cfg, direction, scene.mass), True))
-    return out
+    """The protocol's steps (`Protocol.phases`, under its fixed settings) as (label, segment, starts again from the
+    closed state) in order."""
+    p = physics_protocols.get(protocol)
+    return p.phases(batch, p.settings(cfg), scene.mass)
 
 
 def frame_count(scene: PhysicsScene, batch: physics_backend.Batch, cfg: PhysicsConfig, protocol: str, fps: float | int,
                 max_seconds: float | int | None = None) -> int:
     """How many frames `record` writes (the first, at time 0, included), e.g. for a progress bar's total."""
-    cfg = dgb.config(cfg, protocol) if dgb.is_bench(protocol) else cfg
+    cfg = physics_protocols.get(protocol).settings(cfg)
     steps = sum(seg.n for _, seg, _ in phases(scene, batch, cfg, protocol))
     if max_seconds is not None:
         steps = min(steps, _step_limit(max_seconds, cfg.timestep))
@@ -99,7 +85,8 @@ def record(scene: PhysicsScene, batch: physics_backend.Batch, index: int, cfg: P
     Returns:
         The number of frames written.
     """
-    cfg = dgb.config(cfg, protocol) if dgb.is_bench(protocol) else cfg
+    physics_protocols.say_overrides(cfg, (protocol,))
+    cfg = physics_protocols.get(protocol).settings(cfg)
     path = Path(path)
     suffix = path.suffix.lower()
     if suffix not in FORMATS:

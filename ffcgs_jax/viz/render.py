@@ -37,6 +37,7 @@ from PIL import Image, ImageDraw
 
 from ffcgs_jax.core import files
 from ffcgs_jax.core.errors import FfcgsError
+from ffcgs_jax.runtime import compiled
 from ffcgs_jax.viz.render_software import AMBIENT, FILL_LIGHT, HEADLIGHT, Camera, background, draw, fill_light_direction
 
 BACKENDS = ("auto", "mujoco", "software")
@@ -370,6 +371,11 @@ def _unit_cylinder() -> tuple[np.ndarray, np.ndarray]:
     side = [np.stack([i, j, j + segs], 1), np.stack([i, j + segs, i + segs], 1)]
     caps = [np.stack([np.full(segs, bottom), j, i], 1), np.stack([np.full(segs, top), i + segs, j + segs], 1)]
     return _frozen(v, np.concatenate(side + caps).astype(np.int64))
+
+
+compiled.register("viz.render unit box", _unit_box)  # one entry each (no arguments): constant meshes of a few KB
+compiled.register("viz.render unit sphere", _unit_sphere)
+compiled.register("viz.render unit cylinder", _unit_cylinder)
 
 
 def _fit_camera(points: np.ndarray, azimuth: float, elevation: float, fovy: float, width: int, height: int) -> Camera:

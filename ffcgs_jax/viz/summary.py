@@ -6,13 +6,16 @@ import numpy as np
 from ffcgs_jax.core.errors import FfcgsError
 from ffcgs_jax.physics import protocols as physics_protocols
 from ffcgs_jax.physics.config import ALL_PROTOCOLS
+from ffcgs_jax.physics.results import PhysicsResult
 from ffcgs_jax.synthesis.grasp import GraspSet, summary_rows
 
 
 def summary(results, protocols=None) -> str:
-    """A grasp set's table (counts and medians over the valid grasps), or for the per-grasp arrays of
-    `fj.evaluate_physics` the success rates with 95 % intervals and failure reasons of `protocols` (default: every
-    protocol the results hold). One row a line, names aligned."""
+    """A grasp set's table (counts and medians over the valid grasps), or for `fj.evaluate_physics`'s result (or
+    its flat arrays, `as_arrays()`, as a file holds them) the success rates with 95 % intervals and failure reasons
+    of `protocols` (default: every protocol the results hold). One row a line, names aligned."""
+    if isinstance(results, PhysicsResult):
+        results = results.as_arrays()
     if isinstance(results, GraspSet):
         rows = summary_rows(results)
     elif isinstance(results, dict):

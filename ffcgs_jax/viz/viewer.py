@@ -174,10 +174,14 @@ def show_grasps(hand: K.Hand, mesh: trimesh.Trimesh, gs, **kw) -> GraspView:
 
 
 def _config(data: dict) -> dict:
+    from ffcgs_jax.core.config import upgrade_keys
+    from ffcgs_jax.synthesis.config import GraspConfig
+
     try:
-        return json.loads(str(data["config_json"])) if "config_json" in data else {}
+        cfg = json.loads(str(data["config_json"])) if "config_json" in data else {}
     except ValueError:
         return {}
+    return upgrade_keys(GraspConfig, cfg)  # a file saved before a setting's rename, under the current names
 
 
 def show(data: dict, hand: K.Hand, mesh: trimesh.Trimesh, host: str = "127.0.0.1", port: int = 8080,
@@ -213,7 +217,7 @@ def show(data: dict, hand: K.Hand, mesh: trimesh.Trimesh, host: str = "127.0.0.1
     handles["info"] = server.gui.add_markdown("")
     order = ranked(data)
     view = GraspView(server, data, hand, mesh, order, geoms, handles,
-                     mu=float(cfg.get("energy", {}).get("mu", 0.2)),
+                     mu=float(cfg.get("energy", {}).get("lp_friction", 0.2)),
                      contact_tol=float(cfg.get("contact_tol", 0.002)))
     slider = server.gui.add_slider("grasp (ranked)", min=1, max=n, step=1, initial_value=1)
     slider.on_update(lambda _: view.select(int(slider.value) - 1))

@@ -135,10 +135,10 @@ CASES = [
     (["grasp", "mug", "--n", "0"], r"n must be an integer in \[1, 1000000\]"),
     (["grasp", "mug", "--n", "abc"], "Error parsing --n"),
     (["grasp", "mug", "--bogus", "1"], "bogus"),
-    (["grasp", "mug", "--sampler", "magic"], "unknown sampler 'magic'"),
+    (["grasp", "mug", "--sampler", "magic"], "invalid choice 'magic' for argument '--sampler'"),
     (["grasp", "mug", "--iters", "0"], r"optim.iters must be an integer in \[1, 100000\]"),
     (["grasp", "mug", "--res", "8"], r"sdf.res must be an integer in \[16, 128\]"),
-    (["grasp", "mug", "--lp-solver", "cplex"], "unknown energy.lp_solver 'cplex'"),
+    (["grasp", "mug", "--lp-solver", "cplex"], "invalid choice 'cplex' for argument '--lp-solver'"),
     (["grasp", "mug", "--protocol", "jump"], "unknown protocol 'jump'"),
     (["grasp", "mug", "--config", "missing.toml"], "config file not found: missing.toml"),
     (["grasp", "mug", "--config", "bad.toml"], "bad.toml is not valid TOML"),
@@ -171,9 +171,9 @@ CASES = [
     (["eval", "good.npz", "--scale", "0.5"], "is not the object these grasps were made for"),
     (["eval", "good.npz", "--scale", "-1"], "--scale must be a finite number > 0"),
     (["eval", "good.npz", "--protocol", "jump"], "unknown protocol 'jump'"),
-    (["eval", "good.npz", "--backend", "tpu"], "unknown physics backend 'tpu'"),
+    (["eval", "good.npz", "--backend", "tpu"], "invalid choice 'tpu' for argument '--backend'"),
     (["eval", "good.npz", "--video", "trial.avi"], "--video trial.avi: .* must end in .gif or .mp4"),
-    (["eval", "good.npz", "--friction", "-1"], r"physics.friction must be in \[0.0, 10.0\]"),
+    (["eval", "good.npz", "--sim-friction", "-1"], r"physics.sim_friction must be in \[0.0, 10.0\]"),
     (["eval", "good.npz", "--out", "a_file/out.npz"], "a file stands where its folder should be"),
     (["eval", "good.npz", "--video", "a_file/v.gif"], "--video a_file/v.gif"),
     # sdf, hand, objects
@@ -320,29 +320,63 @@ def test_eval_simulates_the_recorded_object_and_says_what_it_simulated(inputs, c
     assert str(other["physics_object_sha256"]) == mesh_io.mesh_sha256(mesh_io.load_mesh("box"))
 
 
-def _interrupted(argv: list[str], cwd: Path, after: float) -> subprocess.CompletedProcess:
+# The command under test, with one line on stderr once its work has begun (at the command's start, or at its first
+# large compile): the signal lands mid-run on a fast machine and a slow one alike, with no sleep to guess.
+READY = "ffcgs-test: ready"
+_READY_WRAPPER = f"""
+import contextlib, sys
+from ffcgs_jax.cli import commands, main
+from ffcgs_jax.runtime import progress
+
+def ready():
+    print({READY!r}, file=sys.stderr, flush=True)
+
+def at_start(fn):
+    def run(cmd):
+        ready()
+        return fn(cmd)
+    return run
+
+at, argv = sys.argv[1], sys.argv[2:]
+if at == "command":
+    commands.COMMANDS.update({{k: (cls, at_start(fn)) for k, (cls, fn) in commands.COMMANDS.items()}})
+else:
+    compiling = progress.compiling
+
+    @contextlib.contextmanager
+    def compiling_ready(*args, **kwargs):
+        with compiling(*args, **kwargs):
+            ready()
+            yield
+
+    progress.compiling = compiling_ready
+raise SystemExit(main.main(argv))
+"""
+
+
+def _interrupted(argv: list[str], cwd: Path, at: str) -> subprocess.CompletedProcess:
     env = {**os.environ, "JAX_PLATFORMS": "cpu", "FFCGS_JAX_CACHE": "off"}
-    proc = subprocess.Popen([str(FFCGS), *argv], cwd=cwd, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                            text=True)
-    time.sleep(after)
+    proc = subprocess.Popen([sys.executable, "-c", _READY_WRAPPER, at, *argv], cwd=cwd, env=env, stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True)
+    before = []
+    for line in proc.stderr:
+        if line.strip() == READY:
+            break
+        before.append(line)
     proc.send_signal(signal.SIGINT)
     out, err = proc.communicate(timeout=300)
-    return subprocess.CompletedProcess(argv, proc.returncode, out, err)
+    return subprocess.CompletedProcess(argv, proc.returncode, out, "".join(before) + err)
 
 
-@pytest.mark.parametrize("argv,after", [
-    (["grasp", "mug", "--out", "new/grasps.npz", "--mcap", "new/run.mcap"], 6.0),
-    # protocol v1's long phases: the default protocol may finish these grasps before the signal arrives
-    (["eval", "many.npz", "--all", "--protocol", "both", "--timestep", "0.002", "--shake-cycles", "6",
-      "--push-time", "2"], 5.0),
-    # no `ffcgs sdf` case: the device build of even a 128^3 grid ends within about 3 s, before a signal can be
-    # timed to land in it; the handler is main's, the same for every command
+@pytest.mark.parametrize("argv,at", [
+    (["grasp", "mug", "--out", "new/grasps.npz", "--mcap", "new/run.mcap"], "compile"),
+    (["eval", "many.npz", "--all", "--protocol", "both"], "command"),
     (["dataset", "build", "--objects", "meshes", "--out", "new/d.mcap", "--per-object", "2", "--rotations", "1",
-      "--planner.population", "64", "--planner.refine", "8"], 8.0),
+      "--planner.population", "64", "--planner.refine", "8"], "command"),
 ], ids=["grasp", "eval", "dataset-build"])
-def test_sigint_ends_with_one_line_and_no_partial_output(inputs, argv, after):
+def test_sigint_ends_with_one_line_and_no_partial_output(inputs, argv, at):
     before = {p: (inputs / p).read_bytes() for p in ("good.npz", "many.npz")}
-    r = _interrupted(argv, inputs, after)
+    r = _interrupted(argv, inputs, at)
     assert r.returncode == 130, (r.returncode, r.stderr[-2000:])
     assert r.stderr.strip().splitlines()[-1] == "ffcgs: interrupted" and "Traceback" not in r.stderr, r.stderr
     assert {p: (inputs / p).read_bytes() for p in before} == before
@@ -351,6 +385,17 @@ def test_sigint_ends_with_one_line_and_no_partial_output(inputs, argv, after):
     assert all(".tmp" not in p.name for p in written) and not list(inputs.glob(".*tmp*")), written
     if argv[0] != "dataset":
         assert written == [], written
+
+
+def test_an_interrupt_before_the_package_loads_is_one_line_too(tmp_path):
+    """Ctrl-C in the first moments of `ffcgs` (the handler is set before numpy, JAX or the commands load)."""
+    code = ("import os, signal, sys\n"
+            "from ffcgs_jax.cli import main\n"
+            "signal.signal = (lambda set_: lambda s, h: (set_(s, h), os.kill(os.getpid(), s))[0])(signal.signal)\n"
+            "raise SystemExit(main.main(['grasp', 'mug']))\n")
+    r = subprocess.run([sys.executable, "-c", code], cwd=tmp_path, capture_output=True, text=True, timeout=120,
+                       env={**os.environ, "JAX_PLATFORMS": "cpu"})
+    assert r.returncode == 130 and r.stderr.strip().splitlines() == ["ffcgs: interrupted"], r.stderr
 
 
 def test_help_into_a_closed_pipe_ends_quietly(tmp_path):

@@ -83,7 +83,7 @@ def test_shipped_configs_load(path):
     import tomllib
 
     data = tomllib.loads(path.read_text())
-    from ffcgs_jax.learning.config import TrainConfig
+    from ffcgs_jax.training.config import TrainConfig
 
     cls = {"sdf": cli.SdfCmd, "hand": cli.HandCmd, "grasp": cli.GraspCmd, "paper": cli.GraspCmd,
            "sampler": TrainConfig}[path.stem.split("_")[0]]

@@ -82,6 +82,7 @@ def test_grasp_from_depth_evaluates_on_the_fused_surface(capsys, frames_dir):
     assert code == 2 and "pass --object" in err
 
 
+@pytest.mark.e2e  # 265 s on the 2-core CPU: a second synthesis and the true mesh's evaluation compiled
 def test_grasp_from_depth_with_the_true_object(capsys, frames_dir, tmp_path):
     out = tmp_path / "g.npz"
     code, text, err = run(capsys, "grasp", "--depth", frames_dir / "frames", "--object", "box", *SMALL,

@@ -39,6 +39,7 @@ def outputs(tmp_path_factory):
     return code, out.getvalue(), err.getvalue(), paths
 
 
+@pytest.mark.e2e  # the module's `ffcgs grasp` run: 70 s of compile on the 2-core CPU
 def test_grasp_succeeds_and_prints_the_summary(outputs):
     code, out, err, paths = outputs
     assert code == 0, err
@@ -48,6 +49,7 @@ def test_grasp_succeeds_and_prints_the_summary(outputs):
         assert p.is_file() and f"wrote {p}" in out
 
 
+@pytest.mark.e2e  # the module's `ffcgs grasp` run: 70 s of compile on the 2-core CPU
 def test_grasp_npz(outputs):
     a = grasp_io.load_npz(outputs[3]["npz"])
     assert a["wrist_pose"].shape == (N, 4, 4) and a["q"].shape == (N, 9) and a["contacts"].shape == (N, 5, 3)
@@ -60,6 +62,7 @@ def test_grasp_npz(outputs):
     assert re.search(r"whole call \(s\)\s+\d+\.\d+ \(SDF \d", outputs[1])
 
 
+@pytest.mark.e2e  # the module's `ffcgs grasp` run: 70 s of compile on the 2-core CPU
 def test_grasp_mcap(outputs):
     """The log of a real run plays in Foxglove: scene, transforms, hands and /energy on a real timeline
     (mcap_checks.check_run_log), and its numbers are the run's."""
@@ -77,6 +80,7 @@ def test_grasp_mcap(outputs):
     assert msgs["/summary"][0]["grasps (valid / sampled)"].endswith(f"/ {N}")
 
 
+@pytest.mark.e2e  # the module's `ffcgs grasp` run: 70 s of compile on the 2-core CPU
 def test_grasp_png(outputs):
     img = np.asarray(Image.open(outputs[3]["png"]).convert("RGB"))
     assert img.shape[0] >= 64 and img.shape[1] >= 64
@@ -99,7 +103,7 @@ def _nan_poses():
     (lambda t: ["grasp", "/no/such/mesh.stl"], "mesh.stl"),
     (lambda t: ["grasp", "nonexistent_thing"], "nonexistent_thing"),
     (lambda t: ["grasp", "box", "--n", "0"], r"n must be an integer in \[1, 1000000\]"),
-    (lambda t: ["grasp", "box", "--sampler", "learned"], "unknown sampler 'learned'"),
+    (lambda t: ["grasp", "box", "--sampler", "learned"], "invalid choice 'learned' for argument '--sampler'"),
     (lambda t: ["grasp", "box", "--poses", _poses_file(t, _nan_poses())], "NaN"),
     (lambda t: ["grasp", "box", "--poses", _poses_file(t, np.zeros((2, 3, 4)))], r"shape \(4, 4\) or \(B, 4, 4\)"),
     (lambda t: ["grasp", "box", "--poses", str(t / "missing.npy")], "pose file not found"),

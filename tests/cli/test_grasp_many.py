@@ -65,6 +65,7 @@ def folder_run(tmp_path_factory):
     return code, out, err, meshes, d / "grasps"
 
 
+@pytest.mark.e2e  # the folder run of the module: 60 s on the 2-core CPU
 def test_a_broken_mesh_is_one_line_and_the_others_are_done(folder_run):
     code, out, err, meshes, grasps = folder_run
     assert code == 1, err
@@ -80,6 +81,7 @@ def test_a_broken_mesh_is_one_line_and_the_others_are_done(folder_run):
                                                                  "files": ["a_box.npz", "b_flat.npz"]}
 
 
+@pytest.mark.e2e  # the folder run of the module: 60 s on the 2-core CPU
 def test_each_file_equals_a_one_object_run(folder_run):
     from ffcgs_jax.synthesis import grasp_io
 

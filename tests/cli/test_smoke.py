@@ -7,7 +7,7 @@ import pytest
 from ffcgs_jax.cli import smoke
 from ffcgs_jax.cli.commands import BenchCmd, GraspCmd
 from ffcgs_jax.dataset.config import DatasetConfig
-from ffcgs_jax.learning.config import EvaluatorTrainConfig, TrainConfig
+from ffcgs_jax.training.config import EvaluatorTrainConfig, TrainConfig
 from ffcgs_jax.synthesis.config import GraspConfig
 
 

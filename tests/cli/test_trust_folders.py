@@ -152,8 +152,8 @@ def test_train_takes_only_a_runs_own_config(work, capsys):
     assert code == 2 and err.count("\n") == 1, err
     assert "--out RUN holds a config.toml that no ffcgs train run wrote (RUN/config.toml)" in err, err
     assert _tree(run) == before
-    from ffcgs_jax.learning.config import TrainConfig, to_toml
-    from ffcgs_jax.training.train import RUN_CONFIG_MARK
+    from ffcgs_jax.training.config import TrainConfig, to_toml
+    from ffcgs_jax.training.run import RUN_CONFIG_MARK
 
     (run / "config.toml").write_text(f"{RUN_CONFIG_MARK} (an earlier run)\n{to_toml(TrainConfig(out='RUN'))}")
     code, _, err = _run(capsys, "train", "--data.path", "missing.mcap", "--out", "RUN")

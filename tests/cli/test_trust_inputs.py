@@ -23,7 +23,7 @@ from ffcgs_jax.core.errors import FfcgsError
 from ffcgs_jax.geometry import mesh_io
 from ffcgs_jax.hand.spec import load_spec
 from ffcgs_jax.learning import weights as shipped
-from ffcgs_jax.learning.config import EvaluatorTrainConfig, TrainConfig, to_toml
+from ffcgs_jax.training.config import EvaluatorTrainConfig, TrainConfig, to_toml
 from ffcgs_jax.synthesis import grasp_io, many
 
 TOY_HAND = Path(__file__).parents[1] / "data" / "toy_hand"

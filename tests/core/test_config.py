@@ -76,13 +76,14 @@ def test_metrics_config_is_derived_from_the_energy_config():
     from ffcgs_jax.synthesis.config import EnergyConfig, GraspConfig
     from ffcgs_jax.synthesis.grasp import metrics_config
 
-    cfg = GraspConfig(energy=EnergyConfig(mu=0.7, cone_edges=6, d0=0.001, a_c=3.0, a_q=0.1, basis_size=32),
+    cfg = GraspConfig(energy=EnergyConfig(lp_friction=0.7, cone_edges=6, d0=0.001, a_c=3.0, a_q=0.1, basis_size=32),
                       contact_tol=0.003)
     m = metrics_config(cfg)
+    assert m == MetricsConfig.from_energy(cfg.energy, cfg.contact_tol)
     for f in dataclasses.fields(MetricsConfig):
         source = cfg if f.name == "contact_tol" else cfg.energy
         assert getattr(m, f.name) == getattr(source, f.name), f.name
-    assert (m.mu, m.cone_edges, m.basis_size) == (0.7, 6, 32)
+    assert (m.lp_friction, m.cone_edges, m.basis_size, m.contact_tol) == (0.7, 6, 32, 0.003)
 
 
 @pytest.mark.parametrize("cls, field", [("geometry.config.SDFConfig", "res"), ("synthesis.config.OptimConfig", "iters"),

@@ -18,7 +18,7 @@ from ffcgs_jax.core.config import check_integer, check_range, from_dict
 from ffcgs_jax.dataset.config import DatasetConfig
 from ffcgs_jax.core.errors import FfcgsError
 from ffcgs_jax.geometry.config import SDFConfig
-from ffcgs_jax.learning.config import TrainConfig, to_toml
+from ffcgs_jax.training.config import TrainConfig, to_toml
 from ffcgs_jax.physics.config import PhysicsConfig
 from ffcgs_jax.synthesis.config import GraspConfig, load_config
 from ffcgs_jax.viz.config import RenderConfig
@@ -91,6 +91,8 @@ def _near(default, hint):
     if hint is float:
         return st.one_of(st.just(default), st.builds(lambda f: default * f, st.floats(0.5, 1.0)),
                          st.floats(-1e3, 1e3), st.integers(0, 3))  # a TOML integer for a float field
+    if typing.get_origin(hint) is typing.Literal:  # a choice: its values, and text it must refuse in one line
+        return st.one_of(st.sampled_from(typing.get_args(hint)), st.text(max_size=8))
     # free-text fields (paths, the hand) take anything: quotes, backslashes and control characters must survive
     awkward = st.text(st.sampled_from('a/"\\\n\t\x00\x7fé'), max_size=6)
     return st.one_of(st.just(default), st.text(max_size=8), awkward)
@@ -114,7 +116,8 @@ def test_accepted_values_are_kept_exactly_and_round_trip(case):
         return
     for path, hint, v in items:
         got = _get(cfg, path)
-        assert got == v and type(got) is hint, (path, v, got)  # a TOML int for a float field becomes a float
+        want = str if typing.get_origin(hint) is typing.Literal else hint
+        assert got == v and type(got) is want, (path, v, got)  # a TOML int for a float field becomes a float
     again = from_dict(cls, dataclasses.asdict(cfg))
     assert again == cfg and hash(again) == hash(cfg)  # hashable: configs are static jit arguments
 

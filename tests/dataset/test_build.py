@@ -110,11 +110,6 @@ def source_mesh(name: str, objects_dir: Path, seed: int) -> trimesh.Trimesh:
 
 
 @pytest.fixture(scope="module")
-def hand():
-    return K.load_hand("svh")
-
-
-@pytest.fixture(scope="module")
 def objects_dir(tmp_path_factory):
     d = tmp_path_factory.mktemp("objects")
     for name in MAIN_OBJECTS:
@@ -151,7 +146,7 @@ def main_build(tmp_path_factory, objects_dir):
 @pytest.fixture(scope="module")
 def tip_distance():
     """jit: signed distance of the fingertip contact points of one grasp to a Gradient-SDF."""
-    return jax.jit(lambda hand, sdf, H, q: sdf_mod.query(sdf, K.contact_points(hand, H, q))[0])
+    return jax.jit(lambda svh, sdf, H, q: sdf_mod.query(sdf, K.contact_points(svh, H, q))[0])
 
 
 def record_sdf(rec: schema.Record) -> sdf_mod.GradientSDF:
@@ -244,7 +239,7 @@ def test_rotations_are_proper_and_yaw():
             assert any(abs(R[2, 2]) < 0.99 for R in Rs)  # not all about z
 
 
-def test_records_rotate_mesh_sdf_and_grasps_together(main_build, objects_dir, hand, tip_distance):
+def test_records_rotate_mesh_sdf_and_grasps_together(main_build, objects_dir, svh, tip_distance):
     recs = main_build["records"]
     cfg = main_build["cfg"]
     by_object: dict[str, list] = {}
@@ -277,7 +272,7 @@ def test_records_rotate_mesh_sdf_and_grasps_together(main_build, objects_dir, ha
             assert float(rec.table_z) == pytest.approx(float(mesh.bounds[0, 2]), abs=1e-9)  # yaw keeps the table
             sdf = record_sdf(rec)
             for H, q in zip(rec.wrist_pose, rec.q):
-                dists.append(np.asarray(tip_distance(hand, sdf, jnp.asarray(H), jnp.asarray(q))))
+                dists.append(np.asarray(tip_distance(svh, sdf, jnp.asarray(H), jnp.asarray(q))))
         assert not np.allclose(rs[0].grid, rs[1].grid)  # the rotation did change the field
         if dists:
             grasped += 1
@@ -521,7 +516,7 @@ def bad_dirs(tmp_path_factory):
     ([], r"--objects is required"),
     (["--objects", "{bad}/empty"], r"no mesh files .* in .*empty"),
     (["--objects", "{bad}/nowhere"], r"objects directory not found: .*nowhere"),
-    (["--objects", "{objs}", "--split", "val"], r"unknown split 'val'"),
+    (["--objects", "{objs}", "--split", "val"], r"invalid choice 'val' for argument '--split'"),
     (["--objects", "{objs}", "--out", "{bad}/data.npz"], r"--out must name an \.mcap file"),
     (["--objects", "{objs}", "--rotations", "0"], r"rotations must be an integer in \[1, 1000\], got 0"),
     (["--objects", "{objs}", "--config", "{bad}/unknown.toml"], r"unknown config key\(s\) planner\.populaton"),
@@ -614,23 +609,23 @@ def test_dataset_info_counts_json_and_gallery(capsys, main_build, objects_dir, t
 
 
 @pytest.mark.slow  # its own compile (~30 s on 2 cores) for the q= start path; the suite runs near CI's budget
-def test_synthesize_start_channels(main_build, hand, tip_distance):
+def test_synthesize_start_channels(main_build, svh, tip_distance):
     # The build's grasp config and 8 poses: the q=None run reuses the planner's compiled refinement.
     gcfg = main_build["cfg"].grasp
     assert gcfg == GraspConfig(sampler="geometric", sdf=SDFConfig(res=16))
     mesh = mesh_io.load_mesh("box")
     grid = sdf_mod.build_sdf(mesh, gcfg.sdf)
     pcfg = main_build["cfg"].planner
-    s = planner.start_jit(hand, make_target(grid), pcfg, jax.random.PRNGKey(2), gcfg.sampling, gcfg.filters)
+    s = planner.start_jit(svh, make_target(grid), pcfg, jax.random.PRNGKey(2), gcfg.sampling, gcfg.filters)
     poses = K.orthonormalize(np.asarray(s.poses, np.float64)[:pcfg.refine])
-    lo, hi = np.asarray(hand.lower), np.asarray(hand.upper)
+    lo, hi = np.asarray(svh.lower), np.asarray(svh.upper)
     Q = lo + np.random.default_rng(0).uniform(0.3, 0.7, (len(poses), len(lo))) * (hi - lo)
 
-    base = grasp_mod.synthesize(hand, mesh, gcfg, "box", grid=grid, poses=poses)
-    started = grasp_mod.synthesize(hand, mesh, gcfg, "box", grid=grid, poses=poses, q=Q)
+    base = grasp_mod.synthesize(svh, mesh, gcfg, "box", grid=grid, poses=poses)
+    started = grasp_mod.synthesize(svh, mesh, gcfg, "box", grid=grid, poses=poses, q=Q)
 
     def start_Ec(q):
-        return np.array([np.sqrt(np.mean(np.asarray(tip_distance(hand, grid, jnp.asarray(H), jnp.asarray(qq))) ** 2)
+        return np.array([np.sqrt(np.mean(np.asarray(tip_distance(svh, grid, jnp.asarray(H), jnp.asarray(qq))) ** 2)
                                  + 1e-12) for H, qq in zip(poses, q)])
 
     # the descent starts at the given channels (trace index 0) instead of the open hand
@@ -641,23 +636,23 @@ def test_synthesize_start_channels(main_build, hand, tip_distance):
     assert not np.allclose(started["q"], base["q"])
 
     with pytest.raises(FfcgsError, match=r"start channels q must be finite with shape \(8, 9\)"):
-        grasp_mod.synthesize(hand, mesh, gcfg, grid=grid, poses=poses, q=Q[:, :8])
+        grasp_mod.synthesize(svh, mesh, gcfg, grid=grid, poses=poses, q=Q[:, :8])
     with pytest.raises(FfcgsError, match=r"start channels q must be finite"):
-        grasp_mod.synthesize(hand, mesh, gcfg, grid=grid, poses=poses, q=np.where(np.eye(8, 9) > 0, np.nan, Q))
+        grasp_mod.synthesize(svh, mesh, gcfg, grid=grid, poses=poses, q=np.where(np.eye(8, 9) > 0, np.nan, Q))
     with pytest.raises(FfcgsError, match=r"need the wrist poses"):
-        grasp_mod.synthesize(hand, mesh, gcfg, grid=grid, q=Q)
+        grasp_mod.synthesize(svh, mesh, gcfg, grid=grid, q=Q)
 
 
-def test_start_channels_without_rank_promotion(hand):
+def test_start_channels_without_rank_promotion(svh):
     from ffcgs_jax.synthesis import optimize
     from ffcgs_jax.synthesis.config import EnergyConfig, OptimConfig
 
     target = make_target(sdf_mod.build_sdf(mesh_io.load_mesh("box"), SDFConfig(res=16)))
     poses = jnp.asarray(np.repeat(np.eye(4)[None], 2, 0))
     # tracing is enough (the clip is the first thing the descent does); nothing is compiled
-    out = jax.eval_shape(lambda p, q: optimize.descend(hand, target, p, EnergyConfig(), OptimConfig(iters=1), q),
-                         poses, jnp.zeros((2, hand.n_channels)))
-    assert out.q.shape == (2, hand.n_channels)
+    out = jax.eval_shape(lambda p, q: optimize.descend(svh, target, p, EnergyConfig(), OptimConfig(iters=1), q),
+                         poses, jnp.zeros((2, svh.n_channels)))
+    assert out.q.shape == (2, svh.n_channels)
 
 
 def test_source_names_clashing_with_procedural_shapes_are_refused(tmp_path):

@@ -146,7 +146,7 @@ def test_labels_match_a_rerun_of_the_physics_test(plain):
     mesh = srcs[rec.object_name].load()
     again = physics_runner.evaluate_grasps("svh", mesh, {"wrist_pose": rec.wrist_pose, "q": rec.q,
                                                          "squeeze_dir": rec.labels["squeeze_dir"]},
-                                           pcfg, PROTOCOLS, backend="cpu")
+                                           pcfg, protocols=PROTOCOLS, backend="cpu").as_arrays()
     arrays = rec.grasp_arrays()
     for p in PROTOCOLS:
         k = p.replace("-", "_")

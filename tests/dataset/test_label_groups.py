@@ -31,7 +31,7 @@ pytestmark = pytest.mark.e2e  # dataset builds end to end (synthesis, physics, M
 ARGS = ["--procedural", "3", "--seed", "7", "--keep", "all", "--sampler", "geometric", "--per-object", "4",
         "--rotations", "2", "--grasp.sdf.res", "16", "--grasp.optim.iters", "60",
         "--protocols", "lift-shake,six-dir,dexgraspbench", "--engine", "plain", "--group", "2",
-        "--physics.backend", "cpu", "--physics.friction", "1.0", "--physics.close-time", "0.2",
+        "--physics.backend", "cpu", "--physics.sim-friction", "1.0", "--physics.close-time", "0.2",
         "--physics.settle-time", "0.1", "--physics.lift-height", "0.03", "--physics.shake-cycles", "1",
         "--physics.shake-amplitude", "0.02", "--physics.push-time", "0.2"]
 N_OBJECTS = 3

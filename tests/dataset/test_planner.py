@@ -15,7 +15,6 @@ from ffcgs_jax.core.errors import FfcgsError
 from ffcgs_jax.geometry import mesh_io
 from ffcgs_jax.geometry import sdf as S
 from ffcgs_jax.geometry.config import SDFConfig
-from ffcgs_jax.hand import kinematics as K
 from ffcgs_jax.synthesis import energy
 from ffcgs_jax.synthesis.config import FilterConfig
 
@@ -27,58 +26,53 @@ KEY = jax.random.PRNGKey(3)
 
 
 @pytest.fixture(scope="module")
-def hand():
-    return K.load_hand("svh")
-
-
-@pytest.fixture(scope="module")
 def target():
     return energy.make_target(S.build_sdf(mesh_io.load_mesh("box"), SDFConfig(res=16)))
 
 
 @pytest.fixture(scope="module")
-def run(hand, target):
-    return PL.anneal(hand, target, CFG, KEY)
+def run(svh, target):
+    return PL.anneal(svh, target, CFG, KEY)
 
 
 @pytest.mark.slow  # CI margin: ~50 s with its fixture on the 2-core machine
-def test_annealing_lowers_the_energy(hand, target, run):
-    s = PL.start_jit(hand, target, CFG, KEY)
-    before = np.asarray(PL.cheap_energy_batch(hand, target, s.poses, s.q, CFG, FilterConfig()))
+def test_annealing_lowers_the_energy(svh, target, run):
+    s = PL.start_jit(svh, target, CFG, KEY)
+    before = np.asarray(PL.cheap_energy_batch(svh, target, s.poses, s.q, CFG, FilterConfig()))
     poses, q, E = (np.asarray(a) for a in run)
     assert np.all(E <= before)  # the best state seen includes the start
     assert np.mean(E) < 0.9 * np.mean(before)
     # the returned energy is that of the returned state
-    np.testing.assert_allclose(PL.cheap_energy_batch(hand, target, jnp.asarray(poses), jnp.asarray(q), CFG, FilterConfig()), E,
+    np.testing.assert_allclose(PL.cheap_energy_batch(svh, target, jnp.asarray(poses), jnp.asarray(q), CFG, FilterConfig()), E,
                                rtol=1e-9)
 
 
-def test_deterministic_for_a_seed(hand, target, run):
-    again = PL.anneal(hand, target, CFG, KEY)
+def test_deterministic_for_a_seed(svh, target, run):
+    again = PL.anneal(svh, target, CFG, KEY)
     for a, b in zip(run, again):
         np.testing.assert_array_equal(a, b)
-    other = PL.anneal(hand, target, CFG, jax.random.PRNGKey(4))
+    other = PL.anneal(svh, target, CFG, jax.random.PRNGKey(4))
     assert not np.allclose(run[2], other[2])
 
 
 @pytest.mark.slow  # CI margin: the default suite reached 15.3 min on the 2-core machine
-def test_candidates_are_independent(hand, target):
-    s = PL.start_jit(hand, target, CFG, KEY)
+def test_candidates_are_independent(svh, target):
+    s = PL.start_jit(svh, target, CFG, KEY)
     k = 3
     # replace the other candidates' starts and keys: the first k must not notice
     perm = np.r_[np.arange(k), np.arange(CFG.population - 1, k - 1, -1)]
     keys2 = s.keys.at[k:].set(jax.vmap(jax.random.fold_in, (None, 0))(KEY, jnp.arange(CFG.population - k) + 99))
-    a = PL.anneal_from_jit(hand, target, CFG, s.poses, s.q, s.keys)
-    b = PL.anneal_from_jit(hand, target, CFG, s.poses[perm], s.q[perm], keys2)
+    a = PL.anneal_from_jit(svh, target, CFG, s.poses, s.q, s.keys)
+    b = PL.anneal_from_jit(svh, target, CFG, s.poses[perm], s.q[perm], keys2)
     for x, y in zip(a, b):
         np.testing.assert_allclose(np.asarray(x)[:k], np.asarray(y)[:k], rtol=1e-12, atol=1e-12)
     assert not np.allclose(np.asarray(a[2])[k:], np.asarray(b[2])[k:])
 
 
-def test_q_within_limits_and_poses_rigid(hand, run):
+def test_q_within_limits_and_poses_rigid(svh, run):
     poses, q, _ = (np.asarray(a) for a in run)
-    assert q.shape == (CFG.population, hand.n_channels)
-    assert np.all(q >= np.asarray(hand.lower)) and np.all(q <= np.asarray(hand.upper))
+    assert q.shape == (CFG.population, svh.n_channels)
+    assert np.all(q >= np.asarray(svh.lower)) and np.all(q <= np.asarray(svh.upper))
     R = poses[:, :3, :3]
     np.testing.assert_allclose(R @ np.swapaxes(R, 1, 2), np.broadcast_to(np.eye(3), R.shape), atol=1e-9)
     np.testing.assert_array_equal(poses[:, 3], np.broadcast_to([0.0, 0.0, 0.0, 1.0], (CFG.population, 4)))

@@ -298,7 +298,7 @@ def test_wilcoxon_paired():
 @pytest.mark.parametrize(
     "kwargs, match",
     [
-        ({"mu": -0.1}, "metrics.mu"),
+        ({"lp_friction": -0.1}, "metrics.lp_friction"),
         ({"d0": float("nan")}, "metrics.d0"),
         ({"cone_edges": 2}, "metrics.cone_edges"),
         ({"basis_size": 11}, "metrics.basis_size"),

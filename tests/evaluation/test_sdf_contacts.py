@@ -31,7 +31,7 @@ def test_evaluate_on_the_sdf_agrees_with_the_mesh():
     tips = np.array([[[0.031, 0.0, 0.0], [-0.0305, 0.01, 0.005], [-0.0305, -0.01, -0.005], [0.0, 0.0405, 0.0],
                       [0.0, -0.05, 0.0]]])  # the last one is 1 cm off: not a contact
     q = np.zeros((1, 2))
-    cfg = metrics.MetricsConfig(mu=0.6)
+    cfg = metrics.MetricsConfig(lp_friction=0.6)
     centre, radius = np.zeros(3), 0.06
     on_mesh = metrics.evaluate(box, tips, q, -np.ones(2), np.ones(2), cfg, centre=centre, radius=radius)
     on_sdf = metrics.evaluate(grid, tips, q, -np.ones(2), np.ones(2), cfg, centre=centre, radius=radius)

@@ -23,7 +23,7 @@ def frames():
 
 @pytest.fixture
 def folder(tmp_path, frames):
-    return depth_io.write_frames(tmp_path / "views", frames, depth_scale=SCALE)
+    return depth_io.write_frames(frames, tmp_path / "views", depth_scale=SCALE)
 
 
 def _edit_json(path, edit):
@@ -130,7 +130,7 @@ def test_missing_inputs(tmp_path, frames):
     with pytest.raises(FfcgsError, match="not a readable depth .npz: it is a text file"):
         depth_io.load_frames(tmp_path / "text.npz")
     with pytest.raises(FfcgsError, match="does not fit a 16-bit PNG"):
-        depth_io.write_frames(tmp_path / "far", frames._replace(depth=frames.depth * 200))
+        depth_io.write_frames(frames._replace(depth=frames.depth * 200), tmp_path / "far")
 
 
 def test_table_is_found_and_removed():
@@ -170,3 +170,11 @@ def test_crop_and_apply_mask(frames):
     np.testing.assert_array_equal(hard.depth > 0, frames.mask)
     with pytest.raises(FfcgsError, match="bounds must be finite"):
         depth_io.crop(frames, np.array([[0.0, 0.0, 0.0], [1.0, -1.0, 1.0]]))
+
+
+def test_frames_written_in_the_old_argument_order_get_one_line(tmp_path, frames):
+    """`save_frames(folder, frames)` (the order before the public API took one order): refused in one line, and
+    nothing written."""
+    with pytest.raises(FfcgsError, match="the frames come first"):
+        depth_io.save_frames(tmp_path / "old", frames)
+    assert not (tmp_path / "old").exists()

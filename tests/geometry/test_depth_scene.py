@@ -172,7 +172,7 @@ def test_grasp_from_depth_in_the_users_scene(tmp_path, capsys):
     """The issue's case: a 10 cm object (the can, 12 cm tall) on a 1 m table, edges in view, 5 noisy 160 x 120
     views from 45 cm, no masks, no bounds: valid grasps, and the isolation's line."""
     frames = depth_scene.render_scene(mesh_io.load_mesh("can"), "table", 5, W, H, noise=True, seed=0)
-    folder = depth_io.write_frames(tmp_path / "frames", frames._replace(mask=None))
+    folder = depth_io.write_frames(frames._replace(mask=None), tmp_path / "frames")
     out = tmp_path / "g.npz"
     code = cli_main.main(["grasp", "--depth", str(folder), "--n", "16", "--iters", "30", "--out", str(out)])
     text, err = capsys.readouterr()

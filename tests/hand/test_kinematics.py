@@ -21,11 +21,6 @@ FINGERS = ("thumb", "index", "middle", "ring", "little")
 
 
 @pytest.fixture(scope="module")
-def svh():
-    return K.load_hand("svh")
-
-
-@pytest.fixture(scope="module")
 def toy():
     return K.load_hand(DATA / "toy_hand" / "toy.toml")
 

@@ -194,7 +194,7 @@ def test_unknown_solver_is_refused():
     from ffcgs_jax.core.errors import FfcgsError
     from ffcgs_jax.synthesis.config import EnergyConfig
 
-    with pytest.raises(FfcgsError, match="unknown energy.lp_solver 'highs'; solvers: jax, proxsuite"):
+    with pytest.raises(FfcgsError, match="unknown energy.lp_solver 'highs'; choices: jax, proxsuite"):
         EnergyConfig(lp_solver="highs").check()
 
 

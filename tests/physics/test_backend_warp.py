@@ -15,7 +15,7 @@ from test_runner import BALL, SPEC, ball_grasps, enveloping_ball_grasp
 
 pytestmark = pytest.mark.skipif(backend_warp.unavailable() is not None, reason="warp-lang / mujoco-warp missing")
 
-FAST = PhysicsConfig(friction=1.0, close_time=0.2, settle_time=0.1, lift_height=0.03, shake_cycles=1,
+FAST = PhysicsConfig(sim_friction=1.0, close_time=0.2, settle_time=0.1, lift_height=0.03, shake_cycles=1,
                      shake_amplitude=0.02, push_time=0.2)
 
 
@@ -96,7 +96,7 @@ def test_eval_backend_warp_with_a_video(tmp_path, capsys):
     Ts, qs = _four()
     path = tmp_path / "g.npz"
     np.savez(path, object_name=np.array("ball"), wrist_pose=Ts[:2], q=qs[:2], valid=np.ones(2, bool))
-    code = cli_main.main(["eval", str(path), "--backend", "warp", "--protocol", "six-dir", "--friction", "1.0",
+    code = cli_main.main(["eval", str(path), "--backend", "warp", "--protocol", "six-dir", "--sim-friction", "1.0",
                           "--close-time", "0.2", "--settle-time", "0.1", "--push-time", "0.2",
                           "--video", str(tmp_path / "v.gif")])
     out, err = capsys.readouterr()

@@ -22,7 +22,7 @@ VERSIONS = {"dexgraspbench": (0.1, 5.0), "dexgraspbench-bodex": (0.03, 1.0)}  # 
 @pytest.fixture(scope="module")
 def scenes():
     # friction, condim, mass and kp set here must not reach the benchmark's scene: it fixes its own
-    mine = PhysicsConfig(friction=1.0, condim=3, torsional=0.0, mass=0.5, kp=20.0, timestep=0.002, impratio=100.0)
+    mine = PhysicsConfig(sim_friction=1.0, condim=3, torsional=0.0, mass=0.5, kp=20.0, timestep=0.002, impratio=100.0)
     return physics.scenes(SPEC, BALL, mine, DEXGRASPBENCH)
 
 
@@ -58,7 +58,7 @@ def test_the_two_versions_differ_in_mass_and_kp_only(scenes, protocol):
     np.testing.assert_array_equal(m.actuator_gainprm[:, 0], kp)
     np.testing.assert_array_equal(m.actuator_biasprm[:, 1], -kp)
     assert (dgb.VERSIONS[protocol].mass, dgb.VERSIONS[protocol].kp) == (mass, kp)
-    a, b = (dgb.config(PhysicsConfig(), p) for p in DEXGRASPBENCH)
+    a, b = (P.get(p).settings(PhysicsConfig()) for p in DEXGRASPBENCH)
     assert {k for k in vars(a) if getattr(a, k) != getattr(b, k)} == {"mass", "kp"}
 
 
@@ -82,7 +82,7 @@ def test_the_wrist_weld_is_stiff(scenes):
 def test_plan_pregrasp_grasp_squeeze(scenes):
     sc = scenes["dexgraspbench"]
     T, q = enveloping_ball_grasp()
-    cfg = dgb.config(PhysicsConfig(), "dexgraspbench")
+    cfg = P.get("dexgraspbench").settings(PhysicsConfig())
     direction = np.zeros((1, 9))
     direction[0, [1, 6, 8]] = [1.0, -0.5, 1.0]  # channel 8 is at its lower limit 0 at q: the pre-grasp clips there
     batch, depth, _ = physics.prepare(sc, BALL, T[None], q[None], cfg, squeeze_dir=direction)
@@ -118,7 +118,7 @@ def test_each_direction_from_the_squeezed_state_equals_a_fresh_reset():
     for each direction. Deterministic simulation: the same largest move and turn, bit for bit."""
     T, q = enveloping_ball_grasp()
     p = "dexgraspbench"
-    cfg = dgb.config(PhysicsConfig(), p)
+    cfg = P.get(p).settings(PhysicsConfig())
     sc = physics.scenes(SPEC, BALL, cfg, (p,))[p]
     batch, depth, _ = physics.prepare(sc, BALL, T[None], q[None], cfg)
     sim = backend_cpu.CpuSim(sc, 1)
@@ -167,7 +167,7 @@ def test_video_plan_is_grasp_squeeze_then_six_pushes_from_the_squeeze(scenes):
 
     sc = scenes["dexgraspbench-bodex"]
     T, q = enveloping_ball_grasp()
-    batch, _, _ = physics.prepare(sc, BALL, T[None], q[None], dgb.config(PhysicsConfig(), "dexgraspbench-bodex"))
+    batch, _, _ = physics.prepare(sc, BALL, T[None], q[None], P.get("dexgraspbench-bodex").settings(PhysicsConfig()))
     plan = video.phases(sc, batch, PhysicsConfig(timestep=0.002), "dexgraspbench-bodex")  # its own 4 ms
     assert [(label, seg.n, restart) for label, seg, restart in plan[:3]] == [
         ("grasp", 100, False), ("squeeze", 100, False), ("push +x", 500, True)]

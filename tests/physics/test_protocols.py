@@ -10,12 +10,13 @@ import pytest
 from ffcgs_jax.physics import backend_cpu
 from ffcgs_jax.physics import protocols as P
 from ffcgs_jax.physics import runner as physics
+from ffcgs_jax.physics.config import PhysicsConfig
 
 from test_runner import BALL, FAST, SPEC, ball_grasps, enveloping_ball_grasp
 
 # pushes strong enough that the weaker grasps slip out within the short pushes
 # (one slips in the first push, +x, and is not pushed further; one in the last, -z)
-CFG = dataclasses.replace(FAST, friction=0.6, accel=25.0, push_time=0.3)
+CFG = dataclasses.replace(FAST, sim_friction=0.6, accel=25.0, push_time=0.3)
 
 
 def mixed():
@@ -117,3 +118,60 @@ def test_auto_backend_needs_warp_a_cuda_device_and_the_lower_cost(monkeypatch, t
     assert "not installed" in physics.resolve_backend("auto")[1]
     with pytest.raises(physics.FfcgsError, match="unknown physics backend 'gpu'"):
         physics.resolve_backend("gpu")
+
+
+# --- protocols as registered objects ----------------------------------------------------------------------------
+
+
+def test_the_protocol_names_come_from_the_registry():
+    from ffcgs_jax.physics import config as physics_config
+
+    assert physics_config.ALL_PROTOCOLS == P.names() == (
+        "lift-shake", "six-dir", "dexgraspbench", "dexgraspbench-bodex")
+    assert physics_config.PROTOCOLS == P.names(default=True) == ("lift-shake", "six-dir")
+    assert physics_config.DEXGRASPBENCH == ("dexgraspbench", "dexgraspbench-bodex")
+    six = P.get("six-dir")
+    assert (six.kind, six.gravity, six.table, six.hold, six.directions) == ("ours", False, False, True, True)
+    assert [label for label, _, _ in six.phases(*one_grasp(), 0.1)][:3] == ["closing", "settle", "push +x"]
+    with pytest.raises(physics.FfcgsError, match="^unknown protocol 'drop'; protocols: lift-shake, six-dir, "
+                                                 "dexgraspbench, dexgraspbench-bodex$"):
+        P.get("drop")
+    with pytest.raises(physics.FfcgsError, match="'six-dir' is registered already"):
+        P.register(six)
+    with pytest.raises(physics.FfcgsError, match="fixes gain, which PhysicsConfig does not have"):
+        P.register(dataclasses.replace(six, name="six-dir-gain", fixed={"gain": 5.0}))
+
+
+def one_grasp():
+    z = np.zeros((1, 9))
+    return P.Batch(np.zeros((1, 3)), np.array([[1.0, 0, 0, 0]]), z, z, z), CFG
+
+
+def test_fixed_settings_apply_in_one_place_and_an_override_is_said_in_one_line():
+    """DexGraspBench fixes its own friction (and mass, gain, solver, bounds): a value the user set otherwise is
+    replaced, and one warning line names the protocol, the setting, the user's value and the one used; a default
+    the user did not touch, or our protocols, say nothing."""
+    import warnings
+
+    import ffcgs_jax as fj
+
+    bench = P.get("dexgraspbench")
+    mine = PhysicsConfig(sim_friction=0.9, kp=3.0, backend="cpu")
+    used = bench.settings(mine)
+    assert (used.sim_friction, used.kp, used.mass, used.condim) == (0.6, 5.0, 0.1, 4)
+    assert used.squeeze == mine.squeeze and used.backend == "cpu"  # what the benchmark leaves to the user
+    assert P.get("six-dir").settings(mine) is mine
+    T, q = enveloping_ball_grasp()
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        r = fj.evaluate_physics(SPEC, BALL, {"wrist_pose": T[None], "q": q[None]}, mine,
+                                protocols=["dexgraspbench", "six-dir"])
+    said = [str(w.message) for w in caught if "fixes" in str(w.message)]
+    assert said == ["physics: protocol dexgraspbench fixes sim_friction = 0.6 (you set 0.9), kp = 5.0 (you set 3.0): "
+                    "the protocol's values are used"], said
+    assert r.protocols["dexgraspbench"].success.tolist() == [True]  # the grasp ran under the benchmark's friction
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        P.say_overrides(PhysicsConfig(), P.names())  # defaults (kp 0, condim 3, ...) are no choice of the user's
+        P.say_overrides(mine, ("lift-shake", "six-dir"))
+    assert caught == []

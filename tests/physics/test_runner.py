@@ -22,6 +22,7 @@ from ffcgs_jax.physics import protocols as physics_protocols
 from ffcgs_jax.physics import runner as physics
 from ffcgs_jax.physics import validate as physics_validate
 from ffcgs_jax.physics.config import PhysicsConfig
+from ffcgs_jax.physics.results import PhysicsResult
 from ffcgs_jax.synthesis import grasp_io
 from ffcgs_jax.viz import scene
 
@@ -50,7 +51,7 @@ def enveloping_ball_grasp(shift: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
     return T, q
 
 
-def evaluate(wrist, q, cfg=PhysicsConfig(friction=1.0), protocols=physics_config.PROTOCOLS):
+def evaluate(wrist, q, cfg=PhysicsConfig(sim_friction=1.0), protocols=physics_config.PROTOCOLS):
     return physics.evaluate(SPEC, BALL, np.asarray(wrist).reshape(-1, 4, 4), np.asarray(q).reshape(-1, 9), cfg,
                             protocols)
 
@@ -157,7 +158,7 @@ def test_bad_inputs_are_refused():
     with pytest.raises(physics.FfcgsError, match="unknown protocol"):
         evaluate(T, q, protocols=("drop",))
     with pytest.raises(physics.FfcgsError, match="friction"):
-        evaluate(T, q, dataclasses.replace(PhysicsConfig(), friction=-1.0))
+        evaluate(T, q, dataclasses.replace(PhysicsConfig(), sim_friction=-1.0))
 
 
 # --- the command line -----------------------------------------------------------------------------------------
@@ -181,14 +182,14 @@ SHORT = ["--close-time", "0.2", "--settle-time", "0.1", "--push-time", "0.2"]
 
 
 def test_eval_prints_rates_and_adds_results_to_the_npz(capsys, ball_npz):
-    code, out, err = run(capsys, "eval", ball_npz, "--protocol", "six-dir", "--friction", "1.0", *SHORT)
+    code, out, err = run(capsys, "eval", ball_npz, "--protocol", "six-dir", "--sim-friction", "1.0", *SHORT)
     assert code == 0, err
     a = grasp_io.load_npz(ball_npz)
     assert a["physics_tested"].tolist() == [True, False]  # only valid grasps by default
     ok = bool(a["six_dir_success"][0])
     assert f"six-dir success (all)  {int(ok)} / 1 = " in out and "95 % CI" in out
     assert a["six_dir_reason"][1] == -1 and np.isnan(a["six_dir_move"][1])
-    assert '"friction": 1.0' in str(a["physics_config_json"])
+    assert '"sim_friction": 1.0' in str(a["physics_config_json"])
 
 
 def test_eval_all_writes_out_and_keeps_the_input(capsys, ball_npz, tmp_path):
@@ -203,7 +204,7 @@ def test_eval_all_writes_out_and_keeps_the_input(capsys, ball_npz, tmp_path):
     (["missing.npz"], "grasp file not found"),
     (["{npz}", "--protocol", "drop"], "unknown protocol"),
     (["{npz}", "--video", "x.avi"], "so the name must end in .gif or .mp4"),
-    (["{npz}", "--backend", "tpu"], "unknown physics backend"),
+    (["{npz}", "--backend", "tpu"], "invalid choice 'tpu' for argument '--backend'"),
     (["{bare}"], "no wrist_pose or q"),
     (["{anon}"], "pass --object"),
 ])
@@ -230,22 +231,23 @@ def test_validate_puts_the_grasps_that_pass_first(monkeypatch):
               "channel_names": np.array(SPEC.channel_names), "synthesis_s": np.array(1.0)}
     gs = fj.GraspSet(arrays, {"E": np.zeros((2, 3))}, GraspConfig(), "ball")
     assert gs.order().tolist() == [0, 1, 2]
-    checked = fj.validate(SPEC, BALL, gs, ["six-dir"], PhysicsConfig(friction=1.0, backend="cpu"))
+    checked = fj.validate(SPEC, BALL, gs, PhysicsConfig(sim_friction=1.0, backend="cpu"), protocols=["six-dir"])
     assert checked.order().tolist() == [1, 0, 2] and gs.order().tolist() == [0, 1, 2]  # the input is unchanged
     assert checked["physics_passed"].tolist() == [False, True, False]
     assert checked["physics_tested"].tolist() == [True, True, False]  # the invalid grasp is not simulated
     assert checked["six_dir_success"].tolist() == [False, True, False] and checked["six_dir_reason"][2] == -1
     assert json.loads(str(checked["physics_protocols"])) == ["six-dir"] and str(checked["physics_backend"]) == "cpu"
-    assert json.loads(str(checked["physics_config_json"]))["friction"] == 1.0
-    every = fj.validate(SPEC, BALL, gs, ["six-dir"], PhysicsConfig(friction=1.0, backend="cpu"), candidates="all")
+    assert json.loads(str(checked["physics_config_json"]))["sim_friction"] == 1.0
+    every = fj.validate(SPEC, BALL, gs, PhysicsConfig(sim_friction=1.0, backend="cpu"), protocols=["six-dir"],
+                         candidates="all")
     assert every["physics_passed"].tolist() == [False, True, True] and every.order().tolist() == [1, 2, 0]
     # stopping once one passes: a chunk of one grasp at a time, in the analytic order; six-dir first, so the
     # failing grasp never runs lift-shake, and the third is never simulated
     arrays3 = dict(arrays, valid=np.array([True, True, True]))
     three = fj.GraspSet(arrays3, {"E": np.zeros((2, 3))}, GraspConfig(), "ball")
     monkeypatch.setattr(physics_validate, "chunk_size", lambda: 1)
-    early = fj.validate(SPEC, BALL, three, ["lift-shake", "six-dir"], PhysicsConfig(friction=1.0, backend="cpu"),
-                        need=1)
+    early = fj.validate(SPEC, BALL, three, PhysicsConfig(sim_friction=1.0, backend="cpu"),
+                        protocols=["lift-shake", "six-dir"], need=1)
     assert early["physics_tested"].tolist() == [True, True, False] and early.order()[0] == 1
     assert early["physics_passed"].tolist() == [False, True, False]
     assert early["six_dir_reason"][0] > 0 and early["lift_shake_reason"][0] == -1  # not run after six-dir failed
@@ -254,13 +256,18 @@ def test_validate_puts_the_grasps_that_pass_first(monkeypatch):
     believed = fj.GraspSet(dict(arrays3, pred_success=np.array([0.2, 0.9, 0.5]), rank_by=np.array("predicted")),
                            {"E": np.zeros((2, 3))}, GraspConfig(), "ball")
     assert believed.order().tolist() == [1, 2, 0]
-    quick = fj.validate(SPEC, BALL, believed, ["six-dir"], PhysicsConfig(friction=1.0, backend="cpu"), need=1)
+    quick = fj.validate(SPEC, BALL, believed, PhysicsConfig(sim_friction=1.0, backend="cpu"), protocols=["six-dir"],
+                        need=1)
     assert quick["physics_tested"].tolist() == [False, True, False] and quick.order()[0] == 1
     rows = dict(physics_validate.summary_rows(checked, ["six-dir"]))
     assert rows["physics-checked"].startswith("1 of 2 tested grasps pass six-dir") and \
         rows["physics-checked"].endswith("the first grasp passes")
-    with pytest.raises(FfcgsError, match="unknown protocol 'jump'"):
-        fj.validate(SPEC, BALL, gs, ["jump"])
+    with pytest.raises(FfcgsError, match="unknown protocol 'jump'; protocols: lift-shake, six-dir, dexgraspbench"):
+        fj.validate(SPEC, BALL, gs, protocols=["jump"])
+    # the order before hand, object, grasps, cfg: `validate(hand, mesh, gs, ["six-dir"])` meets this check (called
+    # directly: the suite's type-check hook would refuse the list at the annotation first, which a user has not)
+    with pytest.raises(FfcgsError, match="cfg must be a PhysicsConfig, got list: .* protocols as a keyword"):
+        physics.check_cfg(["six-dir"], "validate")
 
 
 @pytest.mark.slow  # 60-70 s on two cores, mostly compiling; test_validate_puts_the_grasps_that_pass_first covers it
@@ -311,13 +318,23 @@ def test_evaluate_physics_is_evaluate_on_a_grasp_set():
     gs = GraspSet({"wrist_pose": Ts, "q": qs, "squeeze_dir": squeeze}, {}, fj.GraspConfig(), "ball")
     old = physics.evaluate(SPEC, BALL, Ts[[2, 0]], qs[[2, 0]], FAST, ("six-dir",), "cpu",
                            squeeze_dir=squeeze[[2, 0]])
-    new = fj.evaluate_physics(fj.load_hand("svh"), BALL, gs, FAST, "six-dir", which=[2, 0], backend="cpu")
+    new = fj.evaluate_physics(fj.load_hand("svh"), BALL, gs, FAST, protocols="six-dir", which=[2, 0], backend="cpu")
     by_name = fj.evaluate_physics("svh", BALL, {"wrist_pose": Ts, "q": qs, "squeeze_dir": squeeze}, FAST,
-                                  ["six-dir"], which=np.array([True, False, True]), backend="cpu")  # 0 then 2
-    assert set(new) == set(old)
+                                  protocols=["six-dir"], which=np.array([True, False, True]), backend="cpu")  # 0, 2
+    assert set(new.as_arrays()) == set(old) and list(new.protocols) == ["six-dir"]
     for k in old:
-        np.testing.assert_array_equal(new[k], old[k], err_msg=k)
-        np.testing.assert_array_equal(by_name[k], old[k][::-1], err_msg=k)
+        np.testing.assert_array_equal(new.as_arrays()[k], old[k], err_msg=k)
+        np.testing.assert_array_equal(by_name.as_arrays()[k], old[k][::-1], err_msg=k)
+    six = new.protocols["six-dir"]
+    assert new.six_dir is six and six.move_dir.shape == (2, 6) and six.pregrasp_penetration is None
+    np.testing.assert_array_equal(six.success, old["six_dir_success"])
+    assert new.index.tolist() == [2, 0] and by_name.index.tolist() == [0, 2]
+    assert six.reasons.tolist() == [physics_protocols.REASONS[r] for r in old["six_dir_reason"]]
+    np.testing.assert_array_equal(new.passed, old["six_dir_success"])
+    again = PhysicsResult.from_arrays(new.as_arrays())  # a file's arrays read back
+    assert list(again.protocols) == ["six-dir"] and set(again.as_arrays()) == set(old)
+    with pytest.raises(fj.FfcgsError, match=r"no dict of arrays: .*as_arrays\(\)\['six_dir_success'\]"):
+        new["six_dir_success"]
     table = fj.summary(new).splitlines()  # what `ffcgs eval` prints, of the protocols the results hold
     assert [line.split("  ")[0] for line in table] == ["six-dir success (all)", "six-dir failures"], table
     with pytest.raises(fj.FfcgsError, match="no lift-shake outcome"):
@@ -333,6 +350,7 @@ def test_evaluate_physics_is_evaluate_on_a_grasp_set():
     (lambda T, q: {"grasps": {"wrist_pose": T, "q": q[:, :5]}}, r"q must have shape \(2, 9\)"),
     (lambda T, q: {"grasps": {"wrist_pose": T, "q": q.astype(str)}}, "q must hold real numbers"),
     (lambda T, q: {"cfg": {"friction": 1.0}}, "cfg must be a PhysicsConfig"),
+    (lambda T, q: {"cfg": ("six-dir",)}, "cfg must be a PhysicsConfig, got tuple: .* protocols as a keyword"),
     (lambda T, q: {"which": [5]}, "out of range for 2 grasps"),
     (lambda T, q: {"which": [0.5]}, "which must be grasp indices"),
     (lambda T, q: {"which": [True]}, r"which as a mask must have shape \(2,\)"),

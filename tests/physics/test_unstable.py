@@ -15,7 +15,6 @@ from ffcgs_jax.core.errors import FfcgsError
 from ffcgs_jax.geometry import mesh_io
 from ffcgs_jax.hand import spec as hand_spec
 from ffcgs_jax.physics import backend, backend_cpu
-from ffcgs_jax.physics import dexgraspbench as dgb
 from ffcgs_jax.physics import protocols as P
 from ffcgs_jax.physics import runner as physics
 from ffcgs_jax.physics.backend_warp import WarpSim, WarpState
@@ -90,7 +89,7 @@ class Injected(backend_cpu.CpuSim):
 
 @pytest.mark.parametrize("protocol", ["lift-shake", "six-dir", "dexgraspbench"])
 def test_diverged_trials_fail_unstable_and_the_others_keep_their_outcome(protocol):
-    cfg = dgb.config(FAST, protocol) if dgb.is_bench(protocol) else FAST
+    cfg = P.get(protocol).settings(FAST)
     T, q = enveloping_ball_grasp()
     Ts, qs = np.stack([T] * 3), np.stack([q] * 3)
     sc = physics.scenes(SPEC, BALL, cfg, (protocol,))[protocol]
@@ -127,7 +126,7 @@ def test_unstable_scene_fails_counts_in_the_summary_and_writes_nothing(tmp_path,
     out, err = capfd.readouterr()
     assert list(tmp_path.iterdir()) == [] and "WARNING" not in out + err, (out, err)
     for p in ("lift_shake", "six_dir"):
-        assert r[f"{p}_reason"].tolist() == [UNSTABLE] * 2 and not r[f"{p}_success"].any()
+        assert r.as_arrays()[f"{p}_reason"].tolist() == [UNSTABLE] * 2 and not r.as_arrays()[f"{p}_success"].any()
     text = fj.summary(r)
     assert "lift-shake success (all)  0 / 2" in text and "unstable 2" in text, text
 

@@ -305,7 +305,7 @@ def test_the_schedule_checks_where_the_cpu_protocols_look(cfg):
     push = events(K.SIX_PUSH)
     assert [t for t, _ in push] == [t - close for t in six[1:]]
     assert [c for _, c in push] == [K.CHECK] * (len(push) - 1) + [K.FINAL]
-    bcfg = dgb.config(cfg, "dexgraspbench")  # DexGraspBench's engine is built with its own config
+    bcfg = P.get("dexgraspbench").settings(cfg)  # DexGraspBench's engine is built with its own config
     bsched = worlds.Schedule(bcfg, nu)
     bench = looks("dexgraspbench", bcfg)
     squeeze = 2 * P.steps(dgb.STAGE_TIME, bcfg.timestep)

@@ -5,13 +5,13 @@ import types
 
 import numpy as np
 
-from ffcgs_jax.physics import dexgraspbench as dgb
+from ffcgs_jax.physics import protocols as P
 from ffcgs_jax.physics import runner, worlds
 from ffcgs_jax.physics.config import PhysicsConfig
 
 from test_runner import SPEC, ball_grasps, enveloping_ball_grasp
 
-FAST = PhysicsConfig(friction=1.0, close_time=0.2, settle_time=0.1, lift_height=0.03, shake_cycles=1,
+FAST = PhysicsConfig(sim_friction=1.0, close_time=0.2, settle_time=0.1, lift_height=0.03, shake_cycles=1,
                      shake_amplitude=0.02, push_time=0.2)
 PROTOCOLS = ("lift-shake", "six-dir", "dexgraspbench")
 
@@ -28,7 +28,7 @@ def make_jobs(mesh, key, Ts, qs, protocols=PROTOCOLS, cfg=FAST, parts=None) -> l
     scenes = runner.scenes(SPEC, mesh, cfg, protocols, parts=parts)
     jobs = []
     for p in protocols:
-        pcfg = dgb.config(cfg, p) if dgb.is_bench(p) else cfg
+        pcfg = P.get(p).settings(cfg)
         batch, depth, _ = runner.prepare(scenes[p], mesh, Ts, qs, pcfg)
         jobs.append(worlds.Job(scenes[p], batch, depth, pcfg, p, object_key=key))
     return jobs

@@ -197,7 +197,7 @@ def test_fixed_normals_change_the_gradient_only_through_the_normals(toy):
         centres, _ = K.fingertip_spheres(hand, K.forward_kinematics(hand, H, x))
         c = jnp.take_along_axis(centres, k[:, None, None], axis=1)[:, 0] + offset
         E_g, _ = quality.q_distance(c, n_fixed, target.centre, target.radius,
-                                    CFG_FIXED.mu, CFG_FIXED.cone_edges, CFG_FIXED.basis_size)
+                                    CFG_FIXED.lp_friction, CFG_FIXED.cone_edges, CFG_FIXED.basis_size)
         return E_g + CFG_FIXED.a_q * En.joint_energy(hand, x)
 
     g_on, g_off = np.asarray(g_on), np.asarray(g_off)

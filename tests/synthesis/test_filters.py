@@ -25,15 +25,15 @@ N_BATCH = 12  # poses in the batch-vs-loop test
 
 
 
-def _depths(hand, sdf, T, q):
+def _depths(svh, sdf, T, q):
     """Every per-pose measure at once, so the tests compile MJX kinematics only a few times (seconds each)."""
-    return (*F.hand_penetration(hand, sdf, T, q), *F.hand_table_penetration(hand, sdf, T, q),
-            F.penetration_penalty(hand, sdf, T, q))
+    return (*F.hand_penetration(svh, sdf, T, q), *F.hand_table_penetration(svh, sdf, T, q),
+            F.penetration_penalty(svh, sdf, T, q))
 
 
-def _depths_batch(hand, sdf, Ts, qs):
-    return (*F.hand_penetration_batch(hand, sdf, Ts, qs), *F.hand_table_penetration_batch(hand, sdf, Ts, qs),
-            F.penetration_penalty_batch(hand, sdf, Ts, qs))
+def _depths_batch(svh, sdf, Ts, qs):
+    return (*F.hand_penetration_batch(svh, sdf, Ts, qs), *F.hand_table_penetration_batch(svh, sdf, Ts, qs),
+            F.penetration_penalty_batch(svh, sdf, Ts, qs))
 
 
 depths = jax.jit(_depths)  # -> depth, per-sphere depths, table depth, per-sphere table depths, penalty
@@ -44,11 +44,6 @@ penalty_grads_shared = jax.jit(jax.grad(
     lambda h, s, T, q: F.penetration_penalty(h, s, T, q, K.forward_kinematics(h, T, q)), argnums=(2, 3)))
 collides = jax.jit(F.pose_collides, static_argnums=3)
 clearance = jax.jit(F.pose_clearance)
-
-
-@pytest.fixture(scope="module")
-def hand():
-    return K.load_hand("svh")
 
 
 @pytest.fixture(scope="module")
@@ -97,26 +92,26 @@ def rot_x(a: float) -> np.ndarray:
 FINGERS_DOWN = rot_x(np.pi)  # root z (along the fingers) -> world -z
 
 
-def palm_root(hand) -> np.ndarray:
-    m = hand.spec.mj_model()
+def palm_root(svh) -> np.ndarray:
+    m = svh.spec.mj_model()
     d = mujoco.MjData(m)
     mujoco.mj_kinematics(m, d)
-    return np.asarray(hand.root_inv)[:3, :3] @ d.site_xpos[hand.palm_site_id] + np.asarray(hand.root_inv)[:3, 3]
+    return np.asarray(svh.root_inv)[:3, :3] @ d.site_xpos[svh.palm_site_id] + np.asarray(svh.root_inv)[:3, 3]
 
 
-def c_spheres(hand, T, q) -> tuple[np.ndarray, np.ndarray]:
+def c_spheres(svh, T, q) -> tuple[np.ndarray, np.ndarray]:
     """Reference sphere centres from MuJoCo C: the root body moved to the wrist pose, qpos from the coupling."""
-    m = hand.spec.mj_model()
-    root = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_BODY, hand.spec.root_body)
+    m = svh.spec.mj_model()
+    root = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_BODY, svh.spec.root_body)
     T = np.asarray(T)
     m.body_pos[root] = T[:3, 3]
     mujoco.mju_mat2Quat(m.body_quat[root], T[:3, :3].ravel())
     d = mujoco.MjData(m)
-    d.qpos[:] = np.asarray(hand.coupling) @ np.asarray(q)
+    d.qpos[:] = np.asarray(svh.coupling) @ np.asarray(q)
     mujoco.mj_kinematics(m, d)
-    b = np.asarray(hand.sphere_body)
-    centres = np.einsum("sij,sj->si", d.xmat.reshape(-1, 3, 3)[b], np.asarray(hand.sphere_pos)) + d.xpos[b]
-    return centres, np.asarray(hand.sphere_radius)
+    b = np.asarray(svh.sphere_body)
+    centres = np.einsum("sij,sj->si", d.xmat.reshape(-1, 3, 3)[b], np.asarray(svh.sphere_pos)) + d.xpos[b]
+    return centres, np.asarray(svh.sphere_radius)
 
 
 def test_config_check_rejects_out_of_range():
@@ -129,37 +124,37 @@ def test_config_check_rejects_out_of_range():
         F.FilterConfig(tip_table_margin=float("nan")).check()
 
 
-def test_far_pose_is_collision_free(hand, box):
-    assert not collides(hand, box, pose(t=(0.6, 0.4, 0.5)))
-    assert float(clearance(hand, box, pose(t=(0.6, 0.4, 0.5)))) > 0.3
+def test_far_pose_is_collision_free(svh, box):
+    assert not collides(svh, box, pose(t=(0.6, 0.4, 0.5)))
+    assert float(clearance(svh, box, pose(t=(0.6, 0.4, 0.5)))) > 0.3
 
 
-def test_palm_inside_object_collides(hand, box):
+def test_palm_inside_object_collides(svh, box):
     # palm centre at the box's centre, hand pointing down so it stays above the table except where it is in the box
-    T = pose(FINGERS_DOWN, np.array([0, 0, 0.07]) - FINGERS_DOWN @ palm_root(hand))
-    assert collides(hand, box, T)
-    assert float(clearance(hand, box, T)) < -0.01
+    T = pose(FINGERS_DOWN, np.array([0, 0, 0.07]) - FINGERS_DOWN @ palm_root(svh))
+    assert collides(svh, box, T)
+    assert float(clearance(svh, box, T)) < -0.01
 
 
-def test_pose_below_table_collides_and_clearance_counts(hand, box):
+def test_pose_below_table_collides_and_clearance_counts(svh, box):
     far = np.array([0.5, 0.0, 0.0])  # beside the object: only the table matters
-    lowest = float(np.asarray(hand.box_vertices)[:, 2].min())  # identity rotation: box corners' lowest z
-    assert collides(hand, box, pose(t=far + [0, 0, -0.05]))
+    lowest = float(np.asarray(svh.box_vertices)[:, 2].min())  # identity rotation: box corners' lowest z
+    assert collides(svh, box, pose(t=far + [0, 0, -0.05]))
     above = pose(t=far + [0, 0, 0.01 - lowest])  # lowest corner 1 cm above the table
-    assert not collides(hand, box, above)
-    assert collides(hand, box, above, F.FilterConfig(clearance=0.02))
-    assert not collides(hand, box, above, F.FilterConfig(clearance=0.005))
+    assert not collides(svh, box, above)
+    assert collides(svh, box, above, F.FilterConfig(clearance=0.02))
+    assert not collides(svh, box, above, F.FilterConfig(clearance=0.005))
 
 
-def test_palm_up(hand):
+def test_palm_up(svh):
     # The SVH palm faces +y in its root frame; rotating about x by a tilts it to (0, cos a, sin a).
-    assert not F.palm_up(hand, pose())  # horizontal: z = 0 is not above 0
-    assert F.palm_up(hand, pose(rot_x(np.pi / 2)))
-    assert not F.palm_up(hand, pose(rot_x(-np.pi / 2)))
+    assert not F.palm_up(svh, pose())  # horizontal: z = 0 is not above 0
+    assert F.palm_up(svh, pose(rot_x(np.pi / 2)))
+    assert not F.palm_up(svh, pose(rot_x(-np.pi / 2)))
     tilted = pose(rot_x(0.1))  # palm 0.1 rad above the horizon, z = sin(0.1) ~ 0.0998
-    assert F.palm_up(hand, tilted)
-    assert not F.palm_up(hand, tilted, F.FilterConfig(palm_up_max=0.2))
-    assert not F.palm_up(hand, pose(rot_x(np.pi / 2)), F.FilterConfig(palm_up_max=1.0))  # disabled
+    assert F.palm_up(svh, tilted)
+    assert not F.palm_up(svh, tilted, F.FilterConfig(palm_up_max=0.2))
+    assert not F.palm_up(svh, pose(rot_x(np.pi / 2)), F.FilterConfig(palm_up_max=1.0))  # disabled
 
 
 def test_tips_below_table(box):
@@ -174,28 +169,28 @@ def test_tips_below_table(box):
     assert not F.tips_below_table(box, jnp.asarray(dip), margin=-0.002)
 
 
-def _pushed_into_ball(hand, depth: float) -> tuple[jnp.ndarray, int]:
+def _pushed_into_ball(svh, depth: float) -> tuple[jnp.ndarray, int]:
     """Hand pointing down onto the ball with its lowest sphere (middle fingertip) `depth` metres inside it."""
-    c, r = c_spheres(hand, np.eye(4), np.zeros(hand.n_channels))
+    c, r = c_spheres(svh, np.eye(4), np.zeros(svh.n_channels))
     k = int(np.argmax(c[:, 2]))
     target = BALL_C + [0, 0, BALL_R + r[k] - depth]
     return pose(FINGERS_DOWN, target - FINGERS_DOWN @ c[k]), k
 
 
-def test_hand_penetration_zero_when_far(hand, ball):
-    q = 0.5 * (hand.lower + hand.upper)
-    depth, per, tdepth, tper, pen = depths(hand, ball, pose(t=(0.3, 0.3, 0.3)), q)
+def test_hand_penetration_zero_when_far(svh, ball):
+    q = 0.5 * (svh.lower + svh.upper)
+    depth, per, tdepth, tper, pen = depths(svh, ball, pose(t=(0.3, 0.3, 0.3)), q)
     assert float(depth) == 0.0 and float(jnp.max(per)) == 0.0
     assert float(tdepth) == 0.0 and float(jnp.max(tper)) == 0.0
     assert float(pen) == 0.0
 
 
-def test_hand_penetration_matches_a_sphere_pushed_into_the_ball(hand, ball):
-    q = jnp.zeros(hand.n_channels)
-    T, k = _pushed_into_ball(hand, 0.008)
-    depth, per, tdepth, _, pen = depths(hand, ball, T, q)
+def test_hand_penetration_matches_a_sphere_pushed_into_the_ball(svh, ball):
+    q = jnp.zeros(svh.n_channels)
+    T, k = _pushed_into_ball(svh, 0.008)
+    depth, per, tdepth, _, pen = depths(svh, ball, T, q)
     # reference: closed-form ball distance at every sphere centre (centres from MuJoCo C)
-    c, r = c_spheres(hand, T, q)
+    c, r = c_spheres(svh, T, q)
     ref = np.maximum(r - (np.linalg.norm(c - BALL_C, axis=1) - BALL_R), 0.0)
     assert abs(float(depth) - 0.008) < DEPTH_TOL
     assert int(jnp.argmax(per)) == k
@@ -204,20 +199,20 @@ def test_hand_penetration_matches_a_sphere_pushed_into_the_ball(hand, ball):
     assert clear.sum() > 100 and (np.asarray(per)[clear] == 0).all()
     # the penalty: the same depths beyond the contact tolerance, squared and summed, plus the q = 0 box corners'
     # squared depths in ball or table
-    v = np.asarray(K.box_vertices(hand, T))
+    v = np.asarray(K.box_vertices(svh, T))
     corner = np.maximum(-np.minimum(np.linalg.norm(v - BALL_C, axis=1) - BALL_R, v[:, 2]), 0.0)
     beyond = np.maximum(ref - F.CONTACT_TOL, 0.0)
     assert float(pen) == pytest.approx(float(np.sum(beyond**2) + np.sum(corner**2)), rel=1e-2)  # SDF vs closed form
     assert float(tdepth) == 0.0  # the table is 7 cm below the fingertip
 
 
-def test_hand_table_penetration(hand, ball):
-    q = jnp.zeros(hand.n_channels)
-    T, _ = _pushed_into_ball(hand, 0.0)
+def test_hand_table_penetration(svh, ball):
+    q = jnp.zeros(svh.n_channels)
+    T, _ = _pushed_into_ball(svh, 0.0)
     T = T.at[:3, 3].add(jnp.array([0.5, 0.0, -0.075]))  # beside the ball, the fingertips 7.5 cm lower
-    c, r = c_spheres(hand, T, q)
+    c, r = c_spheres(svh, T, q)
     ref = np.maximum(r - c[:, 2], 0.0)  # table at z = 0
-    depth, _, tdepth, tper, _ = depths(hand, ball, T, q)
+    depth, _, tdepth, tper, _ = depths(svh, ball, T, q)
     assert ref.max() == pytest.approx(0.005, abs=1e-9)  # the lowest sphere is 5 mm into the table
     assert float(tdepth) == pytest.approx(ref.max(), abs=1e-12)
     np.testing.assert_allclose(np.asarray(tper), ref, atol=1e-12)

@@ -12,6 +12,7 @@ import mujoco
 import numpy as np
 import pytest
 
+from bad_configs import with_bad
 from ffcgs_jax.core.errors import FfcgsError
 from ffcgs_jax.geometry import mesh_io
 from ffcgs_jax.geometry import sdf as sdf_mod
@@ -41,11 +42,6 @@ FIELDS = {  # name: (shape with G for the grasp count, dtype kind)
 
 def synth(hand, mesh, cfg, name, **kw):
     return G.synthesize(hand, mesh, cfg, name, **kw)
-
-
-@pytest.fixture(scope="module")
-def svh():
-    return K.load_hand("svh")
 
 
 @pytest.fixture(scope="module")
@@ -199,7 +195,7 @@ def test_given_poses_skip_sampling(svh, meshes, box_run):
 
 @pytest.mark.parametrize("cfg, message", [
     (G.GraspConfig(n=0), r"n must be an integer in \[1, 1000000\]"),
-    (G.GraspConfig(sampler="learned"), "unknown sampler 'learned'"),
+    (with_bad(G.GraspConfig(), sampler="learned"), "unknown sampler 'learned'"),
     (G.GraspConfig(max_penetration=-0.1), "max_penetration"),
 ])
 def test_bad_config_raises(svh, meshes, cfg, message):
@@ -222,7 +218,7 @@ def test_nested_config_is_validated_before_compiling(svh, meshes, monkeypatch):
 
     monkeypatch.setattr(G, "compiled_device_part", no_compile)
     with pytest.raises(FfcgsError, match="optim.method"):
-        G.synthesize(svh, meshes["box"], dataclasses.replace(BOX, optim=OptimConfig(iters=ITERS, method="sgd")))
+        G.synthesize(svh, meshes["box"], dataclasses.replace(BOX, optim=with_bad(OptimConfig(iters=ITERS), method="sgd")))
 
 
 def test_lowering_a_function_of_a_hand():

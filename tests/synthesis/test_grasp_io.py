@@ -112,13 +112,6 @@ def check_mcap(path, gs, summary, hand_drawn=True):
 
 
 @pytest.fixture(scope="module")
-def svh():
-    from ffcgs_jax.hand.kinematics import load_hand
-
-    return load_hand("svh")
-
-
-@pytest.fixture(scope="module")
 def box():
     from ffcgs_jax.geometry import mesh_io
 

@@ -10,17 +10,11 @@ import trimesh
 
 from ffcgs_jax.core.errors import FfcgsError
 from ffcgs_jax.geometry import objects
-from ffcgs_jax.hand import kinematics as K
 from ffcgs_jax.synthesis import many
 from ffcgs_jax.synthesis.config import GraspConfig
 from ffcgs_jax.synthesis.many import ObjectSource, expand_objects, synthesize_many
 
 WAIT_S = 10.0  # how long a stand-in synthesis waits for the next object's load to start (it starts at once)
-
-
-@pytest.fixture(scope="module")
-def svh():
-    return K.load_hand("svh")  # passed through to the stand-in synthesis; a real one for the type checks
 
 
 def _mesh_files(folder, *names):

@@ -143,11 +143,6 @@ def a_dict():
     return {"wrist_pose": np.eye(4)[None], "q": np.zeros((1, 9)), "valid": np.ones(1, bool)}
 
 
-@pytest.fixture(scope="module")
-def svh():
-    return fj.load_hand("svh")
-
-
 def _grid():
     from ffcgs_jax.geometry.sdf import GradientSDF
 

@@ -15,7 +15,9 @@ from ffcgs_jax.core.errors import FfcgsError
 from ffcgs_jax.learning import checkpoint
 from ffcgs_jax.training import data as cvae_data
 from ffcgs_jax.training import train as cvae_train
-from ffcgs_jax.learning.config import CVConfig, DataConfig, ModelConfig, TrainConfig, TrainOptimConfig, to_toml
+from ffcgs_jax.learning.config import ModelConfig
+from ffcgs_jax.training.config import CVConfig, DataConfig, TrainConfig, TrainOptimConfig, to_toml
+from ffcgs_jax.training.run import dataset_hand
 
 from cvae_toy import make_toy_dataset
 from paths import REPO
@@ -161,13 +163,6 @@ def test_cross_validation_runs_every_fold(toy, tmp_path):
 
 
 @pytest.fixture(scope="module")
-def hand():
-    from ffcgs_jax.hand import kinematics as K
-
-    return K.load_hand("svh")
-
-
-@pytest.fixture(scope="module")
 def weights32(tmp_path_factory):
     """An untrained res-32 network in the weights format (the sampler's contract does not depend on training)."""
     from ffcgs_jax.learning import cvae
@@ -179,14 +174,14 @@ def weights32(tmp_path_factory):
     return path
 
 
-def test_cvae_sampler_contract(hand, weights32, tmp_path):
+def test_cvae_sampler_contract(svh, weights32, tmp_path):
     from ffcgs_jax.geometry import mesh_io, sdf
     from ffcgs_jax.geometry.config import SDFConfig
     from ffcgs_jax.synthesis import samplers
     from ffcgs_jax.synthesis.config import SamplerConfig
 
     grid = sdf.build_sdf(mesh_io.load_mesh("box"), SDFConfig(res=32))
-    sample = samplers.make_sampler("cvae", hand, SamplerConfig(weights=str(weights32)))
+    sample = samplers.make_sampler("cvae", svh, SamplerConfig(weights=str(weights32)))
     a = np.asarray(sample(jax.random.key(0), grid, 6))
     assert a.shape == (6, 4, 4)
     np.testing.assert_allclose(a[:, :3, :3] @ np.swapaxes(a[:, :3, :3], 1, 2), np.broadcast_to(np.eye(3), (6, 3, 3)),
@@ -197,22 +192,22 @@ def test_cvae_sampler_contract(hand, weights32, tmp_path):
     b16 = np.asarray(sample(jax.random.key(0), sdf.build_sdf(mesh_io.load_mesh("box"), SDFConfig(res=16)), 6))
     assert b16.shape == (6, 4, 4) and np.isfinite(b16).all()
     with pytest.raises(FfcgsError, match="weights file not found"):
-        samplers.make_sampler("cvae", hand, SamplerConfig(weights=str(tmp_path / "none.npz")))
+        samplers.make_sampler("cvae", svh, SamplerConfig(weights=str(tmp_path / "none.npz")))
     np.savez(tmp_path / "other.npz", __meta__=np.frombuffer(b'{"format": "x"}', np.uint8))
     with pytest.raises(FfcgsError, match="not a CVAE weights file"):
-        samplers.make_sampler("cvae", hand, SamplerConfig(weights=str(tmp_path / "other.npz")))
+        samplers.make_sampler("cvae", svh, SamplerConfig(weights=str(tmp_path / "other.npz")))
 
 
 @pytest.mark.slow  # cvae inside synthesize runs in the default suite anyway (the default sampler: test_grasp,
 # test_cli_grasp); this adds a non-default weights file, for another ~30 s compile
-def test_cvae_sampler_in_synthesize(hand, weights32):
+def test_cvae_sampler_in_synthesize(svh, weights32):
     from ffcgs_jax.geometry import mesh_io
     from ffcgs_jax.synthesis.config import GraspConfig, OptimConfig, SamplerConfig
     from ffcgs_jax.synthesis.grasp import synthesize
 
     cfg = GraspConfig(n=4, sampler="cvae", sampling=SamplerConfig(weights=str(weights32)),
                       optim=OptimConfig(iters=2))
-    gs = synthesize(hand, mesh_io.load_mesh("box"), cfg, "box")
+    gs = synthesize(svh, mesh_io.load_mesh("box"), cfg, "box")
     assert gs["wrist_pose"].shape == (4, 4, 4) and np.isfinite(gs["E"]).all()
 
 
@@ -237,9 +232,9 @@ def test_training_takes_the_datasets_hand(tmp_path):
     """The sampler is trained for the hand its dataset was built for; naming another hand is refused in one line;
     files from before the field are the SVH's."""
     allegro = make_toy_dataset(tmp_path / "a.mcap", n_objects=2, grasps=2, hand="allegro", channels=16)
-    assert cvae_train.dataset_hand(str(allegro)) == "allegro"
-    assert cvae_train.dataset_hand(str(allegro), "allegro") == "allegro"
+    assert dataset_hand(str(allegro)) == "allegro"
+    assert dataset_hand(str(allegro), "allegro") == "allegro"
     with pytest.raises(FfcgsError, match="built for hand 'allegro', not 'svh'"):
-        cvae_train.dataset_hand(str(allegro), "svh")
+        dataset_hand(str(allegro), "svh")
     old = make_toy_dataset(tmp_path / "o.mcap", n_objects=2, grasps=2)
-    assert cvae_train.dataset_hand(str(old)) == "svh"
+    assert dataset_hand(str(old)) == "svh"

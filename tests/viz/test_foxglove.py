@@ -7,7 +7,6 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from ffcgs_jax.hand.kinematics import load_hand
 from ffcgs_jax.viz import foxglove_scene as fx
 from ffcgs_jax.viz.foxglove_schemas import SCHEMAS
 
@@ -15,11 +14,6 @@ from paths import DATA
 
 TABLE_TOL = 1e-3  # m, as tests/hand/test_kinematics.py against the same table
 FINGERS = ("thumb", "index", "middle", "ring", "little")
-
-
-@pytest.fixture(scope="module")
-def svh():
-    return load_hand("svh")
 
 
 def test_schemas_are_json_schema_and_messages_validate(svh):
