@@ -105,6 +105,7 @@ def _dead_pid() -> int:
     return p.pid
 
 
+@pytest.mark.e2e  # 72 s on the 2-core CPU: two objects synthesised, one of them twice
 @pytest.mark.parametrize("where", ["synthesis", "write"])
 def test_an_interrupted_run_leaves_whole_files_and_resumes(tmp_path, monkeypatch, where):
     """Ctrl-C on the second object, in its synthesis or half-way through writing its file: the first object's file

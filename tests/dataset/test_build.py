@@ -23,6 +23,7 @@ import trimesh
 from PIL import Image
 from scipy.spatial.transform import Rotation
 
+from bad_configs import with_bad
 from ffcgs_jax.cli import main as cli_main
 from ffcgs_jax.dataset import build as dataset_build
 from ffcgs_jax.dataset import mcap_io as dataset_io
@@ -363,7 +364,7 @@ def test_sources_split_by_sorted_index(tmp_path):
     assert sorted(all_) == sorted(set(train) | set(test)) and len(all_) == 12
     assert [n for n, _ in names_of("all")[0]] == names
     with pytest.raises(FfcgsError, match="unknown split"):
-        dataset_build.build(DatasetConfig(objects=str(tmp_path), split="val"), show_progress=False)
+        dataset_build.build(with_bad(DatasetConfig(objects=str(tmp_path)), split="val"), show_progress=False)
 
 
 def test_procedural_shapes():
