@@ -300,5 +300,6 @@ def load_config(path) -> GraspConfig:
     fields = {f.name for f in dataclasses.fields(GraspConfig)}
     if data and set(data) <= fields:
         return from_dict(GraspConfig, data)
-    raise FfcgsError(f"config file {path} has no [grasp] table (its tables: {', '.join(sorted(data)) or 'none'}): "
+    tables = sorted(k if k.isprintable() else repr(k) for k in data)  # a quoted TOML key may hold a newline
+    raise FfcgsError(f"config file {path} has no [grasp] table (its tables: {', '.join(tables) or 'none'}): "
                      f"it configures another command")

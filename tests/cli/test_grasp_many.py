@@ -157,6 +157,7 @@ def test_an_interrupted_run_leaves_whole_files_and_resumes(tmp_path, monkeypatch
     assert "0 of 2 objects already written with these settings, skipped; 2 written with other settings" in stdout
 
 
+@pytest.mark.e2e  # 69 s on the 2-core CPU: two objects synthesised and simulated
 def test_validate_checks_each_object(tmp_path):
     meshes = tmp_path / "meshes"
     _write_boxes(meshes)
