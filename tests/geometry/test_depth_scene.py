@@ -120,16 +120,13 @@ def test_summary_says_what_was_kept_and_removed(mug, fused):
     assert "removed: the table" in row and "1 other part," in row and "beyond 50 cm" in row
 
 
-def test_isolation_is_fast_and_deterministic(scenes):
-    import time
-
+def test_isolation_is_deterministic(scenes):
+    """The same frames give the same mask (its speed, ~15 ms at 640 x 480, is bench/depth.py's to measure: a test
+    does not time a shared machine)."""
     f = scenes["clutter"]._replace(mask=None)
     big = f._replace(depth=np.repeat(np.repeat(f.depth, 4, 1), 4, 2), K=f.K * [[4], [4], [1]])  # 640 x 480
     plane = np.array([0.0, 0.0, 1.0, 0.0])
-    depth_isolate.isolate(big, plane)
-    t0 = time.perf_counter()
     a, iso = depth_isolate.isolate(big, plane)
-    assert time.perf_counter() - t0 < 0.2  # ~15 ms alone; room for a busy two-core machine
     b, iso2 = depth_isolate.isolate(big, plane)
     np.testing.assert_array_equal(a.mask, b.mask)
     assert iso.summary() == iso2.summary() and iso.stride == 7
