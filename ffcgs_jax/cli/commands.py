@@ -324,8 +324,8 @@ def run_grasp(cmd: GraspCmd) -> int:
     # From depth, the filters and epsilon read the fused surface, as a robot without the mesh would: which grasps
     # are returned must not depend on whether a mesh was also given. The true mesh adds the *_true figures.
     gs = synthesize(hand, mesh if cmd.depth is None else fused.grid, cmd.grasp, name, grid=grid, poses=poses)
-    if mesh is not None:
-        gs = gs.with_arrays(**mesh_io.identity(obj, cmd.grasp.sdf.scale, mesh))
+    # where the object came from (`object_source`, `_scale`, `_sha256`) is recorded by `synthesize`, and from depth
+    # frames by `check_on_mesh` below: load_mesh hashed the mesh once
     if cmd.depth is not None:
         gs = gs.with_arrays(sdf_s=np.asarray(depth_s, np.float64), total_s=np.asarray(gs["total_s"] + depth_s))
     rows += summary_rows(gs)
