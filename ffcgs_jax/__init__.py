@@ -41,7 +41,7 @@ _API = {
     "synthesize": ("ffcgs_jax.synthesis.grasp", "synthesize"),
     "synthesize_many": ("ffcgs_jax.synthesis.many", "synthesize_many"),
     "check_on_mesh": ("ffcgs_jax.synthesis.grasp", "check_on_mesh"),
-    "evaluate_physics": ("ffcgs_jax.physics.runner", "evaluate_grasps"),
+    "evaluate_physics": ("ffcgs_jax.physics.evaluate_physics", "evaluate_grasps"),
     "validate": ("ffcgs_jax.physics.validate", "validate"),
     "PhysicsResult": ("ffcgs_jax.physics.results", "PhysicsResult"),
     "ProtocolOutcome": ("ffcgs_jax.physics.results", "ProtocolOutcome"),
@@ -98,7 +98,7 @@ if TYPE_CHECKING:  # what the lazy names are, for type checkers and editors
     from ffcgs_jax.training.evaluator_train import train as train_evaluator  # noqa: F401
     from ffcgs_jax.training.train import train as train_sampler  # noqa: F401
     from ffcgs_jax.physics.config import PROTOCOLS, PhysicsConfig  # noqa: F401
-    from ffcgs_jax.physics.runner import evaluate_grasps as evaluate_physics  # noqa: F401
+    from ffcgs_jax.physics.evaluate_physics import evaluate_grasps as evaluate_physics  # noqa: F401
     from ffcgs_jax.physics.validate import validate  # noqa: F401
     from ffcgs_jax.physics.registry import Protocol  # noqa: F401
     from ffcgs_jax.physics.registry import register as register_protocol  # noqa: F401

@@ -334,7 +334,7 @@ def test_public_api_names_resolve():
     for name in ffcgs_jax.__all__:
         assert getattr(ffcgs_jax, name) is not None, name
     assert set(ffcgs_jax.__all__) <= set(dir(ffcgs_jax))
-    from ffcgs_jax.physics.runner import evaluate_grasps
+    from ffcgs_jax.physics.evaluate_physics import evaluate_grasps
     from ffcgs_jax.synthesis.grasp import synthesize
 
     assert ffcgs_jax.synthesize is synthesize and ffcgs_jax.evaluate_physics is evaluate_grasps

@@ -381,7 +381,8 @@ def _physics_check(spec, mesh, arrays: dict, tested: np.ndarray, cfg: PhysicsCon
 
     n = int(np.sum(tested))
     cfg = dataclasses.replace(cfg, backend=physics_backend(cfg, n, protocols))
-    with tqdm(total=n * len(protocols), desc="physics", unit="grasp", disable=None, leave=False) as bar:
+    total = n * len(protocols) * cfg.robust.trials  # the runner ticks once per grasp, protocol and trial
+    with tqdm(total=total, desc="physics", unit="trial", disable=None, leave=False) as bar:
         return physics_validate.check(spec, mesh, arrays, tested, protocols, cfg, progress=bar.update, need=need)
 
 
@@ -477,12 +478,12 @@ def run_eval(cmd: EvalCmd) -> None:
     data = _physics_check(spec, mesh, data, np.isin(np.arange(len(valid)), idx), cmd.physics, protocols)
     seconds, backend = float(data["physics_s"]), str(data["physics_backend"])
     n = len(valid)
-    res = {k: data[k][idx] for k in data if k.endswith(("_success", "_reason")) and np.ndim(data[k])}
+    res = {k: data[k][idx] for k in data if k.endswith(("_success", "_reason", "_trials")) and np.ndim(data[k])}
     data.update({f"physics_{k}": v for k, v in simulated.items()})
     grasp_io.save_arrays(data, out)
     rows = physics_protocols.summary_rows(res, protocols)
     rows.append(("grasps tested", f"{len(idx)} ({'all' if cmd.all else 'valid'}) in {seconds:.1f} s, "
-                 f"{len(idx) * len(protocols) / seconds:.2f} trials/s, backend {backend}"))
+                 f"{len(idx) * len(protocols) * cmd.physics.robust.trials / seconds:.2f} trials/s, backend {backend}"))
     _print_rows(rows)
     files.announce(f"wrote {out}")
     if cmd.video:

@@ -21,6 +21,7 @@ CANDIDATES = 4
 POPULATION = 64
 STEPS = 10
 GRASPS = 64
+TRIALS = 2  # robust physics trials: two still exercise the perturbations and their folding
 BATCH = 8  # a smoke build's few grasps still make a batch
 
 
@@ -37,6 +38,10 @@ def _grasp(cfg):
     return dataclasses.replace(cfg, n=_cap(cfg.n, GRASPS))
 
 
+def _physics(cfg):
+    return dataclasses.replace(cfg, robust=dataclasses.replace(cfg.robust, trials=_cap(cfg.robust.trials, TRIALS)))
+
+
 def _dataset(cfg):
     planner = dataclasses.replace(cfg.planner, population=_cap(cfg.planner.population, POPULATION),
                                   steps=_cap(cfg.planner.steps, STEPS), refine=_cap(cfg.planner.refine, POPULATION))
@@ -45,7 +50,7 @@ def _dataset(cfg):
     return dataclasses.replace(cfg, per_object=_cap(cfg.per_object, CANDIDATES), rotations=1, planner=planner,
                                procedural=procedural,
                                complex=_cap(cfg.complex, max(0, OBJECTS - procedural)) if generated else 0,
-                               grasp=_grasp(cfg.grasp))
+                               grasp=_grasp(cfg.grasp), physics=_physics(cfg.physics))
 
 
 def _bench(cmd):
@@ -64,7 +69,8 @@ def sweep(grid: list[tuple[str, list]]) -> list[tuple[str, list]]:
 
 
 _SCALE = {
-    "grasp": lambda c: dataclasses.replace(c, grasp=_grasp(c.grasp)),
+    "grasp": lambda c: dataclasses.replace(c, grasp=_grasp(c.grasp), physics=_physics(c.physics)),
+    "eval": lambda c: dataclasses.replace(c, physics=_physics(c.physics)),
     "dataset build": _dataset,
     "bench": _bench,
     "train": _train,

@@ -105,7 +105,7 @@ def record_config(cfg: DatasetConfig) -> dict:
             d["grasp"]["sampling"].pop(k)
     for k in ("lp_solver", "lp_pivots"):  # like the backend: the LP paths agree to their tolerance
         d["grasp"]["energy"].pop(k)
-    return d
+    return json.loads(json.dumps(d))  # as stored (lists for tuples), so a resumed build compares like with like
 
 
 @dataclass

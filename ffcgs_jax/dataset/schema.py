@@ -97,14 +97,18 @@ def _label_arrays() -> dict[str, str]:
     """The labels a labelled build (`DatasetConfig.keep` "all") stores beside every candidate, failures included:
     per protocol p (its name with '-' written '_') what `physics.runner.evaluate` returns, and the synthesis's
     analytic metrics and features. Floats beside the grasp itself are float32 (NaN where a protocol did not get
-    that far, e.g. a push after a penetration failure)."""
+    that far, e.g. a push after a penetration failure). With robust trials (the default since issue 45) `_success`
+    is the robust verdict and `_trials` (G, K), `_rate`, `_rate_low`, `_rate_high` come with it; files without
+    them are single-trial labels."""
     from ffcgs_jax.physics.config import ALL_PROTOCOLS
 
     out = {"initial_penetration": "<f4", "palm_contact": "|b1", "physics_rerun_cpu": "|b1"}
     for p in ALL_PROTOCOLS:
         k = p.replace("-", "_")
         out |= {f"{k}_success": "|b1", f"{k}_reason": "|i1", f"{k}_move": "<f4", f"{k}_rot": "<f4",
-                f"{k}_move_dir": "<f4", f"{k}_rot_dir": "<f4"}
+                f"{k}_move_dir": "<f4", f"{k}_rot_dir": "<f4",
+                # robust trials (`physics.robust`): (G, K) outcomes, the pass rate and its Wilson interval
+                f"{k}_trials": "|b1", f"{k}_rate": "<f4", f"{k}_rate_low": "<f4", f"{k}_rate_high": "<f4"}
         if p.startswith("dexgraspbench"):
             out[f"{k}_pregrasp_penetration"] = "<f4"
     for k in PHYSICS_ARRAYS:
@@ -124,7 +128,7 @@ OPTIONAL_GRASP_ARRAYS = {"wrist_pose_noisy": "<f8", **PHYSICS_ARRAYS, **LABEL_AR
 
 _NDIM = {"grid": 4, "origin": 1, "voxel_size": 0, "table_z": 0, "wrist_pose": 3, "wrist_pose_noisy": 3, "q": 2,
          "contact_dist": 2, "contacts": 3, "squeeze_dir": 2,
-         **{k: 2 for k in LABEL_ARRAYS if k.endswith(("_move_dir", "_rot_dir"))}}
+         **{k: 2 for k in LABEL_ARRAYS if k.endswith(("_move_dir", "_rot_dir", "_trials"))}}
 """Array ranks (1 where not listed: per-grasp values)."""
 
 SUCCESS_KEYS = tuple(k for k in OPTIONAL_GRASP_ARRAYS if k.endswith("_success"))

@@ -4,7 +4,10 @@ Grasps that passed every physics protocol they were checked with (`physics_passe
 `physics.validate.validate`) come first, then valid grasps, then the rest; within each group by decreasing
 predicted success (`pred_success`, the learned predictor of `synthesis.prediction`) when the arrays were ranked
 "predicted" (`rank_by`), else by increasing E (the analytic order); ties by index, so the same grasps always give
-the same order. Arrays without `rank_by` (files from before the predictor) rank by E.
+the same order. Arrays without `rank_by` (files from before the predictor) rank by E. A robust check
+(`physics_rate_low`, the lower bound of the rate of passing every protocol over perturbed trials) orders each of the
+first two groups by that bound, highest first, before the rest of the key: the grasp most sure to hold first.
+Files without it rank as before.
 """
 
 import numpy as np
@@ -18,6 +21,9 @@ def ranked(arrays: dict) -> np.ndarray:
     E = np.asarray(arrays.get("E", np.zeros(n)), float)
     passed = np.asarray(arrays.get("physics_passed", np.zeros(n, bool)), bool)
     key = -np.asarray(arrays["pred_success"], float) if rank_by(arrays) == "predicted" else E
+    if "physics_rate_low" in arrays:  # robust trials: the surer a grasp holds, the sooner; untested ones last
+        surety = np.nan_to_num(-np.asarray(arrays["physics_rate_low"], float), nan=1.0)
+        return np.lexsort((np.arange(n), key, ~valid, surety, ~passed))
     return np.lexsort((np.arange(n), key, ~valid, ~passed))
 
 

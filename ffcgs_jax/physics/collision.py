@@ -79,11 +79,20 @@ def parts(mesh: trimesh.Trimesh, cfg: PhysicsConfig = PhysicsConfig()) -> list[P
             out = fallback(mesh, cfg)
             warnings.warn(f"collision geometry: {cfg.collision} passed its {cfg.collision_budget:g} s budget; "
                           f"the object has {len(out)} coarser voxel-hull parts instead", BudgetWarning, stacklevel=2)
-    out = [p for p in out if len(p[0]) >= 4]
+    out = [p for p in out if len(p[0]) >= 4 and not flat(p[0])]
     if not out:
         raise FfcgsError(f"the {cfg.collision} decomposition of the object produced no solid part "
                          "(is the mesh degenerate?)")
     return out
+
+
+def flat(vertices: np.ndarray) -> bool:
+    """Whether a part's vertices lie in a plane (RMS distance from their best plane under `MIN_EXTENT` / 10): V-HACD
+    and CoACD can return such a sliver, which has no volume to collide with and which MuJoCo refuses to compile
+    ("coplanar vertices, cannot compute convex hull"), failing the whole object's scene."""
+    v = np.asarray(vertices, np.float64)
+    s = np.linalg.svd(v - v.mean(axis=0), compute_uv=False)
+    return bool(s[-1] / np.sqrt(len(v)) < MIN_EXTENT / 10)
 
 
 def fallback(mesh: trimesh.Trimesh, cfg: PhysicsConfig) -> list[Part]:

@@ -21,7 +21,7 @@ from ffcgs_jax.geometry import mesh_io
 from ffcgs_jax.physics import collision
 from ffcgs_jax.physics.config import PhysicsConfig
 
-_VERSION = 2  # bump when the decomposition's meaning changes, so old cache entries are not reused
+_VERSION = 3  # bump when the decomposition's meaning changes, so old cache entries are not reused
 
 
 def cache_dir() -> Path:

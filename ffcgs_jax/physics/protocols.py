@@ -369,14 +369,22 @@ def _scatter(values: np.ndarray, idx: np.ndarray, b: int) -> np.ndarray:
 
 
 def summary_rows(results: dict[str, np.ndarray], protocols) -> list[tuple[str, str]]:
-    """Success rates over all tested grasps with 95 % Wilson intervals, and failure reasons."""
+    """Success rates over all tested grasps with 95 % Wilson intervals, and failure reasons; with robust trials
+    (`<p>_trials`) success means the grasp holds (`robust`), and a row gives the share of all trials passed."""
     rows = []
     for p in protocols:
         ok, reason = results[result_key(p, "success")], results[result_key(p, "reason")]
         k, n = int(ok.sum()), len(ok)
         lo, hi = wilson(k, n)
         rate = f"{100 * k / n:.1f} %" if n else "-"
-        rows.append((f"{p} success (all)", f"{k} / {n} = {rate}  (95 % CI {100 * lo:.1f}-{100 * hi:.1f} %)"))
+        trials = results.get(result_key(p, "trials"))
+        label = f"{p} holds (all)" if trials is not None else f"{p} success (all)"
+        rows.append((label, f"{k} / {n} = {rate}  (95 % CI {100 * lo:.1f}-{100 * hi:.1f} %)"))
+        if trials is not None and np.size(trials):
+            t = np.asarray(trials, bool)
+            rows.append((f"{p} trials passed", f"{int(t.sum())} / {t.size} = {100 * t.mean():.1f} % ({t.shape[1]} "
+                         f"perturbed trials per grasp; a grasp holds when its 90 % interval's lower bound >= the "
+                         f"threshold)"))
         counts = ", ".join(f"{r} {int((reason == i).sum())}" for i, r in enumerate(REASONS) if i)
         rows.append((f"{p} failures", counts))
     return rows

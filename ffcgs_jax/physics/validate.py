@@ -20,8 +20,9 @@ import trimesh
 from ffcgs_jax.core.errors import FfcgsError, check_grasp_set
 from ffcgs_jax.evaluation import ranking
 from ffcgs_jax.hand.spec import HandSpec
+from ffcgs_jax.physics import evaluate_physics
 from ffcgs_jax.physics import protocols as physics_protocols
-from ffcgs_jax.physics import runner
+from ffcgs_jax.physics import robust, runner
 from ffcgs_jax.physics.config import PROTOCOLS, PhysicsConfig
 
 
@@ -54,10 +55,16 @@ def validate(hand, mesh: trimesh.Trimesh, grasps, cfg: PhysicsConfig = PhysicsCo
         NaN / False / -1 where untested), `physics_tested` and `physics_passed` (tested and passed every
         protocol), and the record of the check: `physics_protocols` (JSON list), `physics_backend`,
         `physics_config_json`, `physics_s`. Its `order()` puts the grasps that passed first.
+
+        With robust trials (`cfg.robust.trials` > 1, the default: `robust`), each protocol's `_success` is its
+        robust verdict and `_rate`, `_rate_low`, `_rate_high`, `_trials` (B, K) come with it; `physics_rate`,
+        `physics_rate_low`, `physics_rate_high` are those of passing every protocol in the same trial, and
+        `physics_passed` is whether that holds (lower bound >= `cfg.robust.threshold`); the order then puts the
+        grasps by decreasing lower bound after the passers are first.
     """
     if candidates not in ("valid", "all"):
         raise FfcgsError(f"candidates must be 'valid' or 'all', got {candidates!r}")
-    runner.check_cfg(cfg, "validate")
+    evaluate_physics.check_cfg(cfg, "validate")
     check_grasp_set(grasps, "validate")
     protocols = (protocols,) if isinstance(protocols, str) else protocols
     tested = np.ones(len(grasps["q"]), bool) if candidates == "all" else np.asarray(grasps["valid"], bool)
@@ -66,7 +73,9 @@ def validate(hand, mesh: trimesh.Trimesh, grasps, cfg: PhysicsConfig = PhysicsCo
 
 
 # what `runner.evaluate` returns per protocol (`<protocol>_<result>`)
-RESULTS = ("success", "reason", "move", "rot", "move_dir", "rot_dir", "pregrasp_penetration")
+RESULTS = ("success", "reason", "move", "rot", "move_dir", "rot_dir", "pregrasp_penetration", *robust.RATE_KEYS)
+# the joint verdict over a check's protocols (`robust.joint`), replaced whole by every check
+JOINT = ("physics_rate", "physics_rate_low", "physics_rate_high", "physics_holds", "physics_trials")
 
 
 def chunk_size() -> int:
@@ -93,7 +102,7 @@ def check(spec: HandSpec, mesh: trimesh.Trimesh, arrays: Mapping[str, np.ndarray
     if len(idx):  # before any simulation, the grasps numbered as in the file
         runner.check_reach(spec, mesh, np.asarray(arrays["wrist_pose"])[idx], idx)
     stale = {physics_protocols.result_key(p, s) for p in protocols for s in RESULTS}  # an earlier check's
-    arrays = {k: v for k, v in arrays.items() if k not in stale}
+    arrays = {k: v for k, v in arrays.items() if k not in stale and k not in JOINT}
     backend, _ = runner.resolve_backend(cfg.backend, max(len(idx), 1), protocols, cfg)
     t0 = time.perf_counter()
     squeeze = arrays.get("squeeze_dir")
@@ -109,6 +118,12 @@ def check(spec: HandSpec, mesh: trimesh.Trimesh, arrays: Mapping[str, np.ndarray
     for p in protocols:  # nothing simulated (no candidate): the record still says what would have judged them
         arrays.setdefault(physics_protocols.result_key(p, "success"), np.zeros(n, bool))
     passed = np.logical_and.reduce([arrays[physics_protocols.result_key(p, "success")] for p in protocols]) & tested
+    both = robust.joint(arrays, protocols, cfg.robust) if tested.any() else None
+    if both is not None:  # robust trials: a grasp passes when it holds every protocol in the same trials
+        for k, v in both.items():
+            arrays[k] = np.where(tested, v, False if v.dtype == bool else np.nan)
+        passed = arrays["physics_holds"] & tested
+        arrays["physics_trials"] = np.asarray(cfg.robust.trials, np.int64)
     arrays.update(physics_tested=tested, physics_passed=passed,
                   physics_protocols=np.array(json.dumps(list(protocols))), physics_backend=np.array(backend),
                   physics_config_json=np.array(json.dumps(dataclasses.asdict(cfg))),
@@ -169,11 +184,13 @@ def summary_rows(grasps, protocols) -> list[tuple[str, str]]:
     and whether the grasp offered first is one of them."""
     tested = np.asarray(grasps["physics_tested"], bool)
     res = {k: np.asarray(v)[tested] for k, v in grasps.arrays.items()
-           if k.endswith(("_success", "_reason", "_move", "_rot")) and np.ndim(v) and len(v) == len(tested)}
+           if k.endswith(("_success", "_reason", "_move", "_rot", "_trials")) and np.ndim(v) and len(v) == len(tested)}
     rows = physics_protocols.summary_rows(res, protocols) if tested.any() else []
     passed = int(np.sum(grasps["physics_passed"]))
     first = ranking.ranked(grasps.arrays)[0] if len(tested) else None
-    rows.append(("physics-checked", f"{passed} of {int(tested.sum())} tested grasps pass "
+    trials = int(grasps.arrays.get("physics_trials", 1))
+    verdict = f"hold (in the same trials of {trials}, 95 % sure of most)" if trials > 1 else "pass"
+    rows.append(("physics-checked", f"{passed} of {int(tested.sum())} tested grasps {verdict} "
                  f"{' and '.join(protocols)} ({float(grasps['physics_s']):.1f} s, physics backend "
                  f"{grasps['physics_backend']}); the first grasp "
                  f"{'passes' if first is not None and grasps['physics_passed'][first] else 'does not pass'}"))

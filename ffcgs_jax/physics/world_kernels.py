@@ -254,6 +254,7 @@ def build(max_speed: float):
                o_mass: wp.array(dtype=float), o_ipos: wp.array(dtype=wp.vec3), o_iquat: wp.array(dtype=wp.quat),
                o_inertia: wp.array(dtype=wp.vec3), o_invweight: wp.array(dtype=wp.vec2),
                o_subtree: wp.array(dtype=float), o_dofw: wp.array2d(dtype=float),
+               o_friction: wp.array(dtype=wp.vec3), table_geom: int, geom_friction: wp.array2d(dtype=wp.vec3),
                geom_dataid: wp.array2d(dtype=int), geom_pos: wp.array2d(dtype=wp.vec3),
                geom_quat: wp.array2d(dtype=wp.quat), geom_size: wp.array2d(dtype=wp.vec3),
                geom_aabb: wp.array3d(dtype=wp.vec3), geom_rbound: wp.array2d(dtype=float),
@@ -276,9 +277,12 @@ def build(max_speed: float):
                 geom_aabb[w, gid, 0] = part_aabb[i, 0]
                 geom_aabb[w, gid, 1] = part_aabb[i, 1]
                 geom_rbound[w, gid] = part_rbound[i]
+                geom_friction[w, gid] = o_friction[o]
             else:
                 geom_dataid[w, gid] = -1
                 geom_rbound[w, gid] = 0.0
+        if table_geom >= 0:  # the object's scene gives the table the object's friction (`scene.build`)
+            geom_friction[w, table_geom] = o_friction[o]
         body_mass[w, obj_body] = o_mass[o]
         body_ipos[w, obj_body] = o_ipos[o]
         body_iquat[w, obj_body] = o_iquat[o]

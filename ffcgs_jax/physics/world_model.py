@@ -84,6 +84,7 @@ class ObjectRows:
     dof_invweight0: np.ndarray
     table_z: float
     mass: float
+    friction: np.ndarray  # (3,) the object's geoms' sliding, torsional and rolling friction
 
     @property
     def parts(self) -> int:
@@ -108,7 +109,19 @@ def object_rows(scene: PhysicsScene) -> ObjectRows:
                 invweight0=m.body_invweight0[b], subtreemass=m.body_subtreemass[b])
     dof = m.jnt_dofadr[m.body_jntadr[b]]
     table = float(m.geom_pos[scene.table_geom, 2]) if scene.table_geom >= 0 else float("nan")
-    return ObjectRows(meshes, geom, body, m.dof_invweight0[dof: dof + 6].copy(), table, float(scene.mass))
+    friction = m.geom_friction[geoms[0]].copy()  # every part's (`scene.build`), and the table's
+    return ObjectRows(meshes, geom, body, m.dof_invweight0[dof: dof + 6].copy(), table, float(scene.mass), friction)
+
+
+# what differs per world rather than per engine: an object's friction, mass and geometry (robust trials vary them)
+PER_WORLD = ("sim_friction", "mass", "density", "collision", "voxel_cells", "voxel_tol", "coacd_threshold",
+             "hull_vertices", "collision_budget", "robust")
+
+
+def engine_config(cfg: PhysicsConfig) -> PhysicsConfig:
+    """`cfg` with the per-world fields (`PER_WORLD`) at their defaults: what an engine is built and keyed by."""
+    base = PhysicsConfig()
+    return dataclasses.replace(cfg, **{f: getattr(base, f) for f in PER_WORLD})
 
 
 def _mesh_slice(m: mujoco.MjModel, first: int, count: int) -> dict[str, np.ndarray]:

@@ -61,8 +61,9 @@ CONTACTS_PER_WORLD = 48
 ROWS_PER_WORLD = 256
 GRAVITY = -9.81  # m/s^2, `scene.build`'s
 # model fields that differ per world (`gather`): an object's parts, mass and inertia; the table's height
-BATCHED = ("geom_dataid", "geom_pos", "geom_quat", "geom_size", "geom_aabb", "geom_rbound", "body_mass", "body_ipos",
-           "body_iquat", "body_inertia", "body_invweight0", "body_subtreemass", "dof_invweight0")
+BATCHED = ("geom_dataid", "geom_pos", "geom_quat", "geom_size", "geom_aabb", "geom_rbound", "geom_friction",
+           "body_mass", "body_ipos", "body_iquat", "body_inertia", "body_invweight0", "body_subtreemass",
+           "dof_invweight0")
 MESH_FIELDS = ("vertadr", "vertnum", "faceadr", "normaladr", "normalnum", "graphadr", "vert", "normal", "face",
                "graph", "pos", "quat", "polynum", "polyadr", "polynormal", "polyvertadr", "polyvertnum", "polyvert",
                "polymapadr", "polymapnum", "polymap")
@@ -227,7 +228,8 @@ class Engine:
                          a(cat("rbound"), wp.float32), a(body("mass").reshape(-1), wp.float32),
                          a(body("ipos"), wp.vec3), a(body("iquat"), wp.quat), a(body("inertia"), wp.vec3),
                          a(body("invweight0"), wp.vec2), a(body("subtreemass").reshape(-1), wp.float32),
-                         a(np.stack([r.dof_invweight0 for r in rows]), wp.float32)]
+                         a(np.stack([r.dof_invweight0 for r in rows]), wp.float32),
+                         a(np.stack([r.friction for r in rows]), wp.vec3)]
 
     # -------------------------------------------------------------------------------------------------------
     # tasks
@@ -327,7 +329,7 @@ class Engine:
                                                       d.qacc_warmstart, d.overflow])
             o, m = self._obj, self.m
             wp.launch(self.k["gather"], dim=n, inputs=[
-                widx, self.ip, self.fp, self.col, self.slot_geoms, int(self.scene.obj_body), self.obj_dof, *o, m.geom_dataid, m.geom_pos, m.geom_quat, m.geom_size,
+                widx, self.ip, self.fp, self.col, self.slot_geoms, int(self.scene.obj_body), self.obj_dof, *o, int(self.scene.table_geom), m.geom_friction, m.geom_dataid, m.geom_pos, m.geom_quat, m.geom_size,
                 m.geom_aabb, m.geom_rbound, m.body_mass, m.body_ipos, m.body_iquat, m.body_inertia,
                 m.body_invweight0, m.body_subtreemass, m.dof_invweight0, m.opt.gravity, GRAVITY])
         self.tag[idx] = now.tag
@@ -481,12 +483,13 @@ def _add(spec, job: Job, states, engines, pending, nworld, device, slots, progre
     kind = world_model.kind_of(job.scene)
     if kind not in engines:
         n = slots or job.cfg.max_hulls
-        engines[kind] = engine(spec, job.cfg, kind, n, nworld, device)
+        engines[kind] = engine(spec, world_model.engine_config(job.cfg), kind, n, nworld, device)
         engines[kind].start_run()
         pending[kind] = []
     e = engines[kind]
-    if job.cfg != e.cfg:
-        raise FfcgsError("the jobs of one GPU run need one physics config per protocol kind")
+    if world_model.engine_config(job.cfg) != e.cfg:
+        raise FfcgsError("the jobs of one GPU run need one physics config per protocol kind (but for the object's "
+                         "friction, mass and geometry, which are per world)")
     key = ("job", len(states)) if job.object_key is None else job.object_key
     st = JobState(job)
     states.append(st)

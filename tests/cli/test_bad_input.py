@@ -20,7 +20,8 @@ from ffcgs_jax.geometry import mesh_io, objects
 from ffcgs_jax.synthesis import grasp_io
 
 FFCGS = Path(sys.executable).parent / "ffcgs"
-PHYSICS_FAST = ["--close-time", "0.2", "--settle-time", "0.1", "--push-time", "0.2", "--protocol", "six-dir"]
+PHYSICS_FAST = ["--close-time", "0.2", "--settle-time", "0.1", "--push-time", "0.2", "--protocol", "six-dir",
+                "--trials", "1"]
 
 
 def _grasps(path: Path, obj: str = "ball", n: int = 2) -> Path:

@@ -22,7 +22,7 @@ from ffcgs_jax.synthesis import grasp_io
 from paths import DATA
 
 SMALL = ["--width", "64", "--height", "48", "--no-noise", "--views", "3"]
-PHYSICS_FAST = ["--close-time", "0.2", "--settle-time", "0.1", "--push-time", "0.2"]
+PHYSICS_FAST = ["--close-time", "0.2", "--settle-time", "0.1", "--push-time", "0.2", "--trials", "1"]
 
 
 def _tree(folder: Path) -> dict[str, bytes]:

@@ -22,7 +22,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+import ffcgs_jax as fj
 from ffcgs_jax.core import files
+from ffcgs_jax.core.config import from_dict
 from ffcgs_jax.cli import main as cli_main
 from ffcgs_jax.dataset import build as dataset_build
 from ffcgs_jax.dataset import engine
@@ -33,7 +35,6 @@ from ffcgs_jax.core.errors import FfcgsError
 from ffcgs_jax.geometry import objects as builtin_objects
 from ffcgs_jax.geometry import procedural
 from ffcgs_jax.training import data as learning_data
-from ffcgs_jax.physics import runner as physics_runner
 from ffcgs_jax.physics.config import PhysicsConfig
 
 pytestmark = pytest.mark.e2e  # dataset builds end to end, Ray clusters
@@ -46,7 +47,7 @@ PER_OBJECT = 6
 # 4 generated objects (3 simple, 1 complex), every candidate labelled by the three protocols; tiny SDF and descent
 ARGS = ["--procedural", "3", "--complex", "1", "--seed", "7", "--keep", "all", "--sampler", "geometric",
         "--per-object", str(PER_OBJECT), "--rotations", "1", "--grasp.sdf.res", "16", "--grasp.optim.iters", "60",
-        "--protocols", ",".join(PROTOCOLS), "--task-cpus", "1"]
+        "--protocols", ",".join(PROTOCOLS), "--task-cpus", "1", "--trials", "2"]
 N_OBJECTS = 4
 
 
@@ -139,14 +140,14 @@ def test_export_carries_the_labels(plain, tmp_path):
 
 def test_labels_match_a_rerun_of_the_physics_test(plain):
     config = dataset_io.read_config(plain)["config"]
-    pcfg = PhysicsConfig(**{k: v for k, v in config["physics"].items() if k in PhysicsConfig.__dataclass_fields__})
+    pcfg = from_dict(PhysicsConfig, config["physics"], say_renamed=False)
     srcs = {s.name: s for s in dataset_objects.sources(DatasetConfig(procedural=3, complex=1, seed=7))}
     rec = max(dataset_io.iter_records(plain), key=lambda r: int(r.lift_shake_success.sum()))
     np.testing.assert_array_equal(rec.rotation, np.eye(3))  # record 0 is the object as simulated
     mesh = srcs[rec.object_name].load()
-    again = physics_runner.evaluate_grasps("svh", mesh, {"wrist_pose": rec.wrist_pose, "q": rec.q,
-                                                         "squeeze_dir": rec.labels["squeeze_dir"]},
-                                           pcfg, protocols=PROTOCOLS, backend="cpu").as_arrays()
+    again = fj.evaluate_physics("svh", mesh, {"wrist_pose": rec.wrist_pose, "q": rec.q,
+                                              "squeeze_dir": rec.labels["squeeze_dir"]},
+                                pcfg, protocols=PROTOCOLS, backend="cpu").as_arrays()
     arrays = rec.grasp_arrays()
     for p in PROTOCOLS:
         k = p.replace("-", "_")

@@ -10,12 +10,13 @@ from ffcgs_jax.core.errors import FfcgsError
 from ffcgs_jax.physics import backend_warp
 from ffcgs_jax.physics import runner as physics
 from ffcgs_jax.physics.config import PhysicsConfig
+from physics_trials import ONE_TRIAL
 
 from test_runner import BALL, SPEC, ball_grasps, enveloping_ball_grasp
 
 pytestmark = pytest.mark.skipif(backend_warp.unavailable() is not None, reason="warp-lang / mujoco-warp missing")
 
-FAST = PhysicsConfig(sim_friction=1.0, close_time=0.2, settle_time=0.1, lift_height=0.03, shake_cycles=1,
+FAST = PhysicsConfig(robust=ONE_TRIAL, sim_friction=1.0, close_time=0.2, settle_time=0.1, lift_height=0.03, shake_cycles=1,
                      shake_amplitude=0.02, push_time=0.2)
 
 

@@ -11,11 +11,12 @@ from ffcgs_jax.core.errors import FfcgsError
 from ffcgs_jax.geometry import mesh_io, procedural
 from ffcgs_jax.physics import collision, convex, voxel_parts
 from ffcgs_jax.physics.config import PhysicsConfig
+from physics_trials import ONE_TRIAL
 
 XOR_MM = 2.5  # |union of parts xor mesh| / mesh area: the mean thickness where they differ (thin walls make a
 # ratio to the volume meaningless), within a 3 mm voxel
 SURFACE_MM = 4.0  # 95th percentile of the distance from mesh points to the parts, and from parts to the mesh
-FAST = PhysicsConfig(voxel_cells=40)  # a coarser grid keeps each test to seconds on a loaded CPU
+FAST = PhysicsConfig(robust=ONE_TRIAL, voxel_cells=40)  # a coarser grid keeps each test to seconds on a loaded CPU
 
 
 def _union_inside(parts, points):

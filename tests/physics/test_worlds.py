@@ -24,6 +24,7 @@ from ffcgs_jax.physics import runner
 from ffcgs_jax.physics import world_kernels as K
 from ffcgs_jax.physics.backend_cpu import CpuSim
 from ffcgs_jax.physics.config import PROTOCOLS, PhysicsConfig
+from physics_trials import ONE_TRIAL
 
 from test_runner import BALL, SPEC, enveloping_ball_grasp
 from worlds_cases import FAST, StepCounter, at, four_grasps, make_jobs
@@ -122,6 +123,22 @@ def test_compaction_changes_no_outcome(ball_jobs, compacted):
         assert any(b < a for a, b in zip(small, small[1:])), small  # survivors moved to fewer worlds
         assert full == sorted(full), full  # uncompacted: it only grows
         assert compacted.stats[kind].world_steps < whole.stats[kind].world_steps, kind
+
+
+@needs_warp
+def test_friction_and_mass_are_per_world(ball_jobs, cpu_ref):
+    """Robust trials vary the object's friction and mass per world: the ball at friction 0.05 and 0.3 kg in the
+    launches of the ball at friction 1 gives the CPU's outcomes of that scene, which drop grasps the ball at
+    friction 1 holds (so a friction left at the engine's value would fail this)."""
+    slick = dataclasses.replace(FAST, sim_friction=0.05, mass=0.3)
+    Ts, qs = four_grasps()
+    jobs = make_jobs(BALL, "slick", Ts, qs, protocols=("lift-shake",), cfg=slick)
+    ref = P.run_protocol(CpuSim(jobs[0].scene, 1), jobs[0].batch, jobs[0].depth, jobs[0].cfg, "lift-shake")
+    assert ref["success"].sum() < cpu_ref[0]["success"].sum()
+    run = _run(ball_jobs[:1] + jobs)
+    _outcomes_equal(run.results[1], ref, "lift-shake")
+    _outcomes_equal(run.results[0], cpu_ref[0], "lift-shake")
+    assert world_model.engine_config(slick) == world_model.engine_config(FAST)
 
 
 # --- one model, many objects: a world's hand meets only its own object -------------------------------------
@@ -272,7 +289,7 @@ def test_the_device_programs_are_the_protocols_segments(ours_engine, ball_jobs):
     assert seen == {K.LIFT, K.SIX_CLOSE, K.SIX_PUSH, K.BENCH_SQUEEZE, K.BENCH_PUSH}
 
 
-LONG = PhysicsConfig(close_time=1.1, settle_time=0.3, lift_height=0.13, shake_cycles=1, push_time=1.3)
+LONG = PhysicsConfig(robust=ONE_TRIAL, close_time=1.1, settle_time=0.3, lift_height=0.13, shake_cycles=1, push_time=1.3)
 
 
 @pytest.mark.parametrize("cfg", [FAST, LONG], ids=["fast", "long"])

@@ -8,10 +8,11 @@ import numpy as np
 from ffcgs_jax.physics import protocols as P
 from ffcgs_jax.physics import runner, worlds
 from ffcgs_jax.physics.config import PhysicsConfig
+from physics_trials import ONE_TRIAL
 
 from test_runner import SPEC, ball_grasps, enveloping_ball_grasp
 
-FAST = PhysicsConfig(sim_friction=1.0, close_time=0.2, settle_time=0.1, lift_height=0.03, shake_cycles=1,
+FAST = PhysicsConfig(robust=ONE_TRIAL, sim_friction=1.0, close_time=0.2, settle_time=0.1, lift_height=0.03, shake_cycles=1,
                      shake_amplitude=0.02, push_time=0.2)
 PROTOCOLS = ("lift-shake", "six-dir", "dexgraspbench")
 

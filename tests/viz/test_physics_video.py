@@ -16,11 +16,12 @@ from ffcgs_jax.physics import protocols as physics_protocols
 from ffcgs_jax.physics import runner as physics
 from ffcgs_jax.viz import physics_video
 from ffcgs_jax.physics.config import PhysicsConfig
+from physics_trials import ONE_TRIAL
 from ffcgs_jax.viz import scene
 
 SPEC = hand_spec.load_spec("svh")
 BALL = mesh_io.load_mesh("ball")
-CFG = PhysicsConfig(close_time=0.1, settle_time=0.05, lift_height=0.01, shake_cycles=0, push_time=0.05)
+CFG = PhysicsConfig(robust=ONE_TRIAL, close_time=0.1, settle_time=0.05, lift_height=0.01, shake_cycles=0, push_time=0.05)
 W, H = 64, 48
 LABEL_ROWS = 20  # the phase label sits in the top rows
 
