@@ -44,7 +44,10 @@ def candidates(hand, mesh: trimesh.Trimesh, cfg: DatasetConfig, name: str, grid)
     if cfg.sampler == "planner":
         pcfg = dataclasses.replace(cfg.planner, refine=min(cfg.per_object, cfg.planner.population))
         return planner.plan(hand, mesh, pcfg, cfg.grasp, name, grid=grid, key=jax.random.PRNGKey(seed))
-    gcfg = dataclasses.replace(cfg.grasp, sampler=cfg.sampler, n=cfg.per_object, seed=seed % (2**31))
+    # the candidates as drawn, the weak ones too: searching further (`synthesis.search`) would keep the best of
+    # several batches, and the predictor learns from the failures
+    gcfg = dataclasses.replace(cfg.grasp, sampler=cfg.sampler, n=cfg.per_object, seed=seed % (2**31),
+                               search=dataclasses.replace(cfg.grasp.search, max_rounds=1))
     return grasp.synthesize(hand, mesh, gcfg, name, grid=grid)
 
 

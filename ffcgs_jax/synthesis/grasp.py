@@ -33,7 +33,7 @@ from ffcgs_jax.hand.kinematics import Hand
 from ffcgs_jax.hand.sites import palm_centre_root
 from ffcgs_jax.runtime import compile_clock, compiled, progress, traced_store
 from ffcgs_jax.runtime import fetch, memory, sharding
-from ffcgs_jax.synthesis import grasp_io, prediction, samplers
+from ffcgs_jax.synthesis import grasp_io, prediction, samplers, search
 from ffcgs_jax.synthesis import filters as F
 from ffcgs_jax.synthesis.config import EnergyConfig, GraspConfig, OptimConfig
 from ffcgs_jax.synthesis.energy import Target, Terms, chosen, fingertip_contacts, make_target
@@ -167,11 +167,25 @@ def load_grasps(path) -> GraspSet:
     cfg = GraspConfig()
     if "config_json" in arrays:
         try:
-            cfg = config_from_dict(GraspConfig, json.loads(str(arrays.pop("config_json"))), say_renamed=False)
+            cfg = config_from_dict(GraspConfig, _as_made(json.loads(str(arrays.pop("config_json")))),
+                                   say_renamed=False)
         except (FfcgsError, ValueError) as e:
             warnings.warn(f"{path}: its config does not parse here ({e}); GraspConfig's defaults stand in",
                           stacklevel=2)
     return GraspSet(arrays, {}, cfg, name)
+
+
+def _as_made(stored: dict) -> dict:
+    """A stored config from before a setting existed, with that setting at what the code that wrote it did: no
+    final projection (`optim.project_steps` 0) and no further search (`search.max_rounds` 1); their defaults would
+    misstate how the grasps were made."""
+    if isinstance(stored, dict):
+        optim = stored.get("optim")
+        if isinstance(optim, dict) and "project_steps" not in optim:
+            stored = {**stored, "optim": {**optim, "project_steps": 0}}
+        if "search" not in stored:
+            stored = {**stored, "search": {"max_rounds": 1}}
+    return stored
 
 
 def synthesize(hand: Hand, mesh: trimesh.Trimesh | sdf_mod.GradientSDF, cfg: GraspConfig = GraspConfig(),
@@ -235,6 +249,10 @@ def synthesize(hand: Hand, mesh: trimesh.Trimesh | sdf_mod.GradientSDF, cfg: Gra
                 with progress.compiling("the evaluation"):
                     evaluate, eval_compile_s = prepare_evaluation(hand, surface, target, cfg, out)
         gs = finish(hand, target, cfg, out, evaluate, synthesis_s, object_name)
+        # a weak first batch: more batches through the same executables, only the key changes (`search`)
+        again = None if given is not None else \
+            (lambda k: finish(hand, target, cfg, *_batch(hand, surface, target, cfg, run, k), object_name))
+        gs = search.further(gs, cfg.search, cfg.seed, again)
     on_the_way = every[0] - aot_device[0] - aot_eval[0]
     compile_total = compile_s + eval_compile_s + on_the_way
     # where the object came from, when `load_mesh` read it and it is unchanged since: a file saved from Python is
@@ -242,6 +260,16 @@ def synthesize(hand: Hand, mesh: trimesh.Trimesh | sdf_mod.GradientSDF, cfg: Gra
     return gs.with_arrays(compile_s=np.asarray(compile_total, np.float64), sdf_s=np.asarray(sdf_s, np.float64),
                           total_s=np.asarray(time.perf_counter() - start - compile_total, np.float64),
                           **mesh_io.source_of(mesh))
+
+
+def _batch(hand, surface, target, cfg, run, key) -> tuple[DeviceOut, object, float]:
+    """Another batch of a call whose executables are compiled: (device results, its evaluation, seconds)."""
+    t0 = time.perf_counter()
+    out = run(key)
+    evaluate, _ = prepare_evaluation(hand, surface, target, cfg, out)
+    ev = evaluate()
+    out = jax.block_until_ready(out)
+    return out, (lambda: ev), time.perf_counter() - t0
 
 
 def compile_device(hand: Hand, target: Target, cfg: GraspConfig, given: jax.Array | None = None,

@@ -30,9 +30,9 @@ def load_npz(path: str | Path) -> dict[str, np.ndarray]:
 
 
 _ROWS = {"wrist_pose": (None, 4, 4), "q": (None, None), "valid": (None,), "squeeze_dir": (None, None),
-         "pred_success": (None,)}
+         "pred_success": (None,), "search_round": (None,)}
 """Per-grasp arrays the commands read, one row per grasp, and their shapes (None: any length)."""
-_TEXT = ("object_source", "object_name", "object_sha256", "config_json", "rank_by")
+_TEXT = ("object_source", "object_name", "object_sha256", "config_json", "rank_by", "search_why", "search_stop")
 """Fields that hold one string."""
 
 

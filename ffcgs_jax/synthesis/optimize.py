@@ -10,6 +10,8 @@ path the fingers sweep while closing, which the table filter checks.
 The weight of E_c grows over the descent (`optim.contact_ramp`): E_c enters E in metres, so with the paper's
 constant a_c = 5 a fingertip 5 mm short costs 0.025 while E_g reaches 0 early, and nothing pushes the last
 millimetres.
+With `optim.project_steps` > 0 a final projection (`synthesis.project`) then backs penetrating links out of the
+object by moving q; the final terms are those of the projected grasp.
 """
 
 from typing import NamedTuple
@@ -22,6 +24,7 @@ from ffcgs_jax.hand.kinematics import Hand
 from ffcgs_jax.kernels.quality import margin_start
 from ffcgs_jax.synthesis.config import EnergyConfig, OptimConfig
 from ffcgs_jax.synthesis.energy import Target, Terms, energy
+from ffcgs_jax.synthesis.project import project_batch
 from ffcgs_jax.kernels.adam import adam_init, adam_update
 
 
@@ -113,6 +116,8 @@ def descend(hand: Hand, target: Target, poses, energy_cfg: EnergyConfig, optim_c
                              (B, energy_cfg.margin_dirs, 6)))
     ((q, xi), active, iters, lp_ok, _, lp_basis, dirs), hist = jax.lax.scan(step, init, jnp.arange(T))
     poses = jax.vmap(twist_pose)(poses, xi) if wrist else poses
+    # before the final terms, so the energy, contacts and filters judge the projected grasp
+    q = project_batch(hand, target.sdf, poses, q, optim_cfg.project_steps, optim_cfg.project_allow)
     _, final = jax.vmap(lambda H, qq, b, u: energy(hand, target, H, qq, energy_cfg, b, u))(poses, q, lp_basis, dirs)
     trace = Trace(*(jnp.concatenate([h, f[None]], 0) for h, f in
                     zip(hist, (final.E, final.E_g, final.E_c, final.contacts))))

@@ -20,15 +20,17 @@ from ffcgs_jax.geometry.config import SDFConfig
 from ffcgs_jax.hand import kinematics as K
 from ffcgs_jax.synthesis import grasp as G
 from ffcgs_jax.synthesis import samplers
-from ffcgs_jax.synthesis.config import EnergyConfig, OptimConfig
+from ffcgs_jax.synthesis.config import EnergyConfig, OptimConfig, SearchConfig
 from ffcgs_jax.viz import scene
 
 pytestmark = pytest.mark.e2e  # the SVH pipeline compiled in several configurations
 
 N, ITERS = 4, 5
 BOX = G.GraspConfig(n=N, sdf=SDFConfig(res=16), optim=OptimConfig(iters=ITERS))
+# as configs/paper.toml: the paper's algorithm as published (no final projection, no further search)
 PAPER = dataclasses.replace(BOX, sampler="random", energy=EnergyConfig(a_pen=0.0, a_m=0.0, normal_grad=False),
-                            optim=OptimConfig(iters=ITERS, method="gd", wrist=False))
+                            optim=OptimConfig(iters=ITERS, method="gd", wrist=False, project_steps=0),
+                            search=SearchConfig(max_rounds=1))
 ATOL_FK = 1e-9  # MJX (saved contacts) vs MuJoCo C forward kinematics, float64, metres
 FIELDS = {  # name: (shape with G for the grasp count, dtype kind)
     "wrist_pose": (("G", 4, 4), "f"), "q": (("G", 9), "f"), "joint_pos": (("G", 20), "f"), "joint_names": ((20,), "U"),
