@@ -84,6 +84,25 @@ class RobustConfig:
             geometry_settings(g)
         check_range("physics.robust.confidence", self.confidence, 0.5, 0.9999)
         check_range("physics.robust.threshold", self.threshold, 0.0, 1.0)
+        least = fewest_trials(self.confidence, self.threshold)
+        if 1 < self.trials < least:
+            raise FfcgsError(f"physics.robust.trials {self.trials} can never show a grasp holds: at confidence "
+                             f"{self.confidence:g} and threshold {self.threshold:g} even {self.trials} passes of "
+                             f"{self.trials} leave the interval's lower bound below it; use 1 (one nominal trial) or "
+                             f">= {least}")
+
+
+def fewest_trials(confidence: float, threshold: float) -> int:
+    """The fewest trials after which a grasp that passed all of them holds: the Wilson lower bound of n passes in
+    n, n / (n + z^2), reaches `threshold` (`robust.wilson`; 3 at the defaults)."""
+    import math
+
+    from statistics import NormalDist
+
+    z = NormalDist().inv_cdf(0.5 + confidence / 2)
+    if threshold >= 1.0:
+        return 10**9
+    return max(1, math.ceil(z * z * threshold / (1.0 - threshold) - 1e-12))
 
 
 def geometry_settings(text: str) -> dict:

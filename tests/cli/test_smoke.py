@@ -4,6 +4,7 @@ import dataclasses
 
 import pytest
 
+from ffcgs_jax.physics.config import PhysicsConfig, RobustConfig
 from ffcgs_jax.cli import smoke
 from ffcgs_jax.cli.commands import BenchCmd, GraspCmd
 from ffcgs_jax.dataset.config import DatasetConfig
@@ -32,8 +33,11 @@ def test_a_labelled_build_keeps_its_options_and_cv_objects(monkeypatch, capsys):
     small = smoke.scaled("dataset build", cfg)
     assert (small.procedural, small.complex, small.per_object, small.rotations) == (5, 0, 4, 1)
     assert small.planner.refine <= small.planner.population <= smoke.POPULATION
-    same = ("keep", "sampler", "protocols", "scale_min", "scale_max", "seed", "out", "physics")
+    same = ("keep", "sampler", "protocols", "scale_min", "scale_max", "seed", "out")
     assert all(getattr(small, f) == getattr(cfg, f) for f in same)
+    # physics: one nominal trial per grasp, nothing else changed
+    assert small.physics.robust.trials == smoke.TRIALS == 1 and cfg.physics.robust.trials == 8
+    assert dataclasses.replace(small.physics, robust=cfg.physics.robust) == cfg.physics
     assert "FFCGS_SMOKE is set: dataset build" in capsys.readouterr().err
     mixed = smoke.scaled("dataset build", DatasetConfig(procedural=2, complex=10))
     assert (mixed.procedural, mixed.complex) == (2, 3)  # cross-validation's 5 folds still find 5 objects
@@ -54,6 +58,8 @@ def test_grasp_and_bench_shrink_their_batches_only(monkeypatch):
     cmd = GraspCmd(object=("mug",), grasp=GraspConfig(n=4096, devices=2))
     small = smoke.scaled("grasp", cmd)
     assert small.grasp.n == smoke.GRASPS and small.grasp.devices == 2 and small.object == ("mug",)
-    assert smoke.scaled("grasp", GraspCmd(object=("mug",))) == GraspCmd(object=("mug",))  # 32 stays 32
+    assert small.physics.robust.trials == 1  # --validate: one nominal trial per grasp
+    one = GraspCmd(object=("mug",), physics=PhysicsConfig(robust=RobustConfig(trials=1)))
+    assert smoke.scaled("grasp", one) == one  # 32 stays 32, one trial stays one
     bench = smoke.scaled("bench", BenchCmd())
     assert bench.batches == (32,) and bench.repeats <= 2 and not bench.cli_start and bench.object == "mug"

@@ -47,7 +47,7 @@ PER_OBJECT = 6
 # 4 generated objects (3 simple, 1 complex), every candidate labelled by the three protocols; tiny SDF and descent
 ARGS = ["--procedural", "3", "--complex", "1", "--seed", "7", "--keep", "all", "--sampler", "geometric",
         "--per-object", str(PER_OBJECT), "--rotations", "1", "--grasp.sdf.res", "16", "--grasp.optim.iters", "60",
-        "--protocols", ",".join(PROTOCOLS), "--task-cpus", "1", "--trials", "2"]
+        "--protocols", ",".join(PROTOCOLS), "--task-cpus", "1", "--trials", "3"]
 N_OBJECTS = 4
 
 

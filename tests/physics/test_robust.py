@@ -155,5 +155,8 @@ def test_bad_robust_settings_get_one_line():
         PhysicsConfig(robust=RobustConfig(geometries=("voxel-hulls@2",))).check()
     with pytest.raises(FfcgsError, match="physics.robust.trials"):
         RobustConfig(trials=0).check()
+    with pytest.raises(FfcgsError, match="physics.robust.trials 2 can never show a grasp holds.* or >= 3"):
+        RobustConfig(trials=2).check()
+    RobustConfig(trials=3).check()  # 3 of 3: the lower bound 3 / (3 + 1.645^2) = 0.526 clears 0.5
     with pytest.raises(FfcgsError, match=r"physics.robust.mass_factors\[1\]"):
         RobustConfig(mass_factors=(2.0, 1.0)).check()
