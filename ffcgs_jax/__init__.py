@@ -58,6 +58,7 @@ _API = {
     "FilterConfig": ("ffcgs_jax.synthesis.config", "FilterConfig"),
     "SDFConfig": ("ffcgs_jax.geometry.config", "SDFConfig"),
     "PhysicsConfig": ("ffcgs_jax.physics.config", "PhysicsConfig"),
+    "RobustConfig": ("ffcgs_jax.physics.config", "RobustConfig"),
     "PROTOCOLS": ("ffcgs_jax.physics.config", "PROTOCOLS"),
     "build_dataset": ("ffcgs_jax.dataset.build", "build"),
     "merge_dataset": ("ffcgs_jax.dataset.build", "merge"),
@@ -97,7 +98,7 @@ if TYPE_CHECKING:  # what the lazy names are, for type checkers and editors
     from ffcgs_jax.training.config import EvaluatorTrainConfig, TrainConfig  # noqa: F401
     from ffcgs_jax.training.evaluator_train import train as train_evaluator  # noqa: F401
     from ffcgs_jax.training.train import train as train_sampler  # noqa: F401
-    from ffcgs_jax.physics.config import PROTOCOLS, PhysicsConfig  # noqa: F401
+    from ffcgs_jax.physics.config import PROTOCOLS, PhysicsConfig, RobustConfig  # noqa: F401
     from ffcgs_jax.physics.evaluate_physics import evaluate_grasps as evaluate_physics  # noqa: F401
     from ffcgs_jax.physics.validate import validate  # noqa: F401
     from ffcgs_jax.physics.registry import Protocol  # noqa: F401
