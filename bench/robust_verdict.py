@@ -65,17 +65,11 @@ def sources(args) -> list[tuple[str, object]]:
 
 def ranked_after(gs, res: dict, idx: np.ndarray, cfg: PhysicsConfig) -> int:
     """The first grasp of `gs` as `fj.validate` (candidates "valid", need 0) ranks it given the physics results
-    `res` of the grasps `idx`: the same steps as `validate.check` (spread, the joint verdict, physics_passed)."""
+    `res` of the grasps `idx`: `validate.check`'s own steps (spread, then its verdict)."""
     n = len(gs["q"])
     arrays = dict(gs.arrays)
     arrays.update(validate.spread(res, idx, n))
-    tested = np.isin(np.arange(n), idx)
-    passed = np.logical_and.reduce([arrays[f"{p.replace('-', '_')}_success"] for p in BOTH]) & tested
-    both = robust.joint(arrays, BOTH, cfg.robust)
-    if both is not None:
-        arrays.update({k: np.where(tested, v, False if v.dtype == bool else np.nan) for k, v in both.items()})
-        passed = arrays["physics_holds"] & tested
-    arrays["physics_passed"] = passed
+    arrays.update(validate.verdict(arrays, np.isin(np.arange(n), idx), BOTH, cfg))
     return int(ranking.ranked(arrays)[0])
 
 

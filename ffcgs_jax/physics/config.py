@@ -94,7 +94,7 @@ class RobustConfig:
 
 def fewest_trials(confidence: float, threshold: float) -> int:
     """The fewest trials after which a grasp that passed all of them holds: the Wilson lower bound of n passes in
-    n, n / (n + z^2), reaches `threshold` (`robust.wilson`; 3 at the defaults)."""
+    n, n / (n + z^2), reaches `threshold` (`protocols.wilson`; 3 at the defaults)."""
     import math
 
     from statistics import NormalDist

@@ -40,13 +40,18 @@ def result_key(protocol: str, field: str) -> str:
 
 
 
-def wilson(successes: int, n: int, confidence: float = 0.95) -> tuple[float, float]:
-    """Wilson score interval of a binomial proportion (SciPy's `binomtest(...).proportion_ci`); (0, 1) when n = 0."""
+def wilson(successes, n: int, confidence: float = 0.95):
+    """The two-sided Wilson score interval at `confidence` of `successes` (an int, or an array of them) in `n`
+    trials: SciPy's `binomtest(...).proportion_ci(method="wilson")` in closed form, vectorised (the robust
+    verdict's rates use it too); (0, 1) when n = 0. Floats for an int, arrays for an array."""
     if n == 0:
         return 0.0, 1.0
-    ci = scipy.stats.binomtest(int(successes), int(n)).proportion_ci(confidence_level=confidence, method="wilson")
-    return max(0.0, float(ci.low)), min(1.0, float(ci.high))
-
+    z = float(scipy.stats.norm.ppf(0.5 + confidence / 2))
+    p = np.asarray(successes, np.float64) / n
+    centre = (p + z * z / (2 * n)) / (1 + z * z / n)
+    half = z * np.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / (1 + z * z / n)
+    low, high = np.clip(centre - half, 0.0, 1.0), np.clip(centre + half, 0.0, 1.0)
+    return (float(low), float(high)) if np.ndim(successes) == 0 else (low, high)
 
 
 def steps(seconds: float, dt: float) -> int:

@@ -19,8 +19,8 @@ import hashlib
 from collections.abc import Iterable, Iterator
 
 import numpy as np
-import scipy.stats
 
+from ffcgs_jax.physics import convex
 from ffcgs_jax.physics import protocols as physics_protocols
 from ffcgs_jax.physics.config import PhysicsConfig, RobustConfig, geometry_settings
 
@@ -95,23 +95,20 @@ def perturb(cfg: RobustConfig, trial: int, wrist_pose, q) -> tuple[np.ndarray, n
 def expand(items: Iterable, cfg: PhysicsConfig) -> Iterator:
     """Each item (`runner.Item`) as its K trials' items, in order (item 0's trials, then item 1's, ...): perturbed
     grasps and the trial's `settings`. An item's own collision parts are kept for the trials whose geometry is the
-    one `cfg` would build them with; the other trials decompose the object with their variant."""
+    one `cfg` would build them with; each other geometry variant is decomposed once per item and shared by its
+    trials (the disk cache would serve them too, at a read and a mesh hash per trial)."""
     plan = trials(cfg)
     for it in items:
+        parts: dict[tuple, list | None] = {}
         for t in plan:
             pose, q = perturb(cfg.robust, t.index, it.wrist_pose, it.q)
-            own = all(getattr(cfg, k) == v for k, v in t.settings.items() if k in ("collision", "voxel_cells"))
-            yield dataclasses.replace(it, wrist_pose=pose, q=q, settings=t.settings,
-                                      parts=it.parts if own else None)
-
-
-def wilson(passed, n: int, confidence: float) -> tuple[np.ndarray, np.ndarray]:
-    """The two-sided Wilson score interval at `confidence` of `passed` successes (array) in `n` trials."""
-    z = float(scipy.stats.norm.ppf(0.5 + confidence / 2))
-    p = np.asarray(passed, np.float64) / n
-    centre = (p + z * z / (2 * n)) / (1 + z * z / n)
-    half = z * np.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / (1 + z * z / n)
-    return np.clip(centre - half, 0.0, 1.0), np.clip(centre + half, 0.0, 1.0)
+            geometry = {k: v for k, v in t.settings.items() if k in ("collision", "voxel_cells")}
+            key = tuple(sorted(geometry.items()))
+            if key not in parts:
+                own = all(getattr(cfg, k) == v for k, v in geometry.items())
+                parts[key] = (it.parts if own and it.parts is not None
+                              else convex.decompose(it.mesh, dataclasses.replace(cfg, **geometry)))
+            yield dataclasses.replace(it, wrist_pose=pose, q=q, settings=t.settings, parts=parts[key])
 
 
 def rates(outcomes: np.ndarray, cfg: RobustConfig) -> dict[str, np.ndarray]:
@@ -119,7 +116,7 @@ def rates(outcomes: np.ndarray, cfg: RobustConfig) -> dict[str, np.ndarray]:
     outcomes = np.asarray(outcomes, bool)
     k = outcomes.shape[1]
     passed = outcomes.sum(axis=1)
-    low, high = wilson(passed, k, cfg.confidence)
+    low, high = physics_protocols.wilson(passed, k, cfg.confidence)
     return dict(rate=passed / k, rate_low=low, rate_high=high, holds=low >= cfg.threshold)
 
 

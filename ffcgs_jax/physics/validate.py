@@ -117,18 +117,29 @@ def check(spec: HandSpec, mesh: trimesh.Trimesh, arrays: Mapping[str, np.ndarray
         tested = _until_enough(arrays, idx, n, protocols, need, run)
     for p in protocols:  # nothing simulated (no candidate): the record still says what would have judged them
         arrays.setdefault(physics_protocols.result_key(p, "success"), np.zeros(n, bool))
-    passed = np.logical_and.reduce([arrays[physics_protocols.result_key(p, "success")] for p in protocols]) & tested
-    both = robust.joint(arrays, protocols, cfg.robust) if tested.any() else None
-    if both is not None:  # robust trials: a grasp passes when it holds every protocol in the same trials
-        for k, v in both.items():
-            arrays[k] = np.where(tested, v, False if v.dtype == bool else np.nan)
-        passed = arrays["physics_holds"] & tested
-        arrays["physics_trials"] = np.asarray(cfg.robust.trials, np.int64)
-    arrays.update(physics_tested=tested, physics_passed=passed,
+    arrays.update(verdict(arrays, tested, protocols, cfg))
+    arrays.update(physics_tested=tested,
                   physics_protocols=np.array(json.dumps(list(protocols))), physics_backend=np.array(backend),
                   physics_config_json=np.array(json.dumps(dataclasses.asdict(cfg))),
                   physics_s=np.asarray(time.perf_counter() - t0, np.float64))
     return arrays
+
+
+def verdict(arrays: Mapping[str, np.ndarray], tested: np.ndarray, protocols, cfg: PhysicsConfig = PhysicsConfig()
+            ) -> dict[str, np.ndarray]:
+    """The joint verdict over `protocols` of arrays carrying their per-grasp results for the `tested` grasps, what
+    `check` adds and `ranking.ranked` reads: `physics_passed` (passed every protocol; with robust trials, held them
+    all in the same trials) and, with trials, `physics_rate*`, `physics_holds` and `physics_trials`."""
+    tested = np.asarray(tested, bool)
+    out: dict[str, np.ndarray] = {}
+    passed = np.logical_and.reduce([arrays[physics_protocols.result_key(p, "success")] for p in protocols]) & tested
+    both = robust.joint(arrays, protocols, cfg.robust) if tested.any() else None
+    if both is not None:
+        out = {k: np.where(tested, v, False if v.dtype == bool else np.nan) for k, v in both.items()}
+        passed = out["physics_holds"] & tested
+        out["physics_trials"] = np.asarray(cfg.robust.trials, np.int64)
+    out["physics_passed"] = passed
+    return out
 
 
 def _until_enough(arrays: dict, idx: np.ndarray, n: int, protocols, need: int, run) -> np.ndarray:

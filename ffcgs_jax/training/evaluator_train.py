@@ -84,9 +84,10 @@ def figures(prob: np.ndarray, data: evaluator_data.LabelData, rows: np.ndarray) 
     and the calibration error."""
     out = {}
     heads = data.heads
+    hit = evaluator_data.positives(data)[rows]
     for h, name in enumerate(heads):
-        out[f"auc_{name}"] = rank_metrics.auc(prob[:, h], data.y[rows, h] > 0.5)
-    p, y, obj, v = prob[:, -1], data.y[rows, -1] > 0.5, data.objects[rows], data.valid[rows]
+        out[f"auc_{name}"] = rank_metrics.auc(prob[:, h], hit[:, h])
+    p, y, obj, v = prob[:, -1], hit[:, -1], data.objects[rows], data.valid[rows]
     out["within_auc_valid"], out["within_objects"] = rank_metrics.within_auc(p[v], y[v], obj[v])
     out["within_auc_all"], _ = rank_metrics.within_auc(p, y, obj)
     out["within_auc_valid_minus_E"], _ = rank_metrics.within_auc(-data.E[rows][v], y[v], obj[v])
@@ -94,7 +95,7 @@ def figures(prob: np.ndarray, data: evaluator_data.LabelData, rows: np.ndarray) 
     out["top1_pred"] = float(rank_metrics.top_k(p[v], y[v], obj[v]).mean()) if v.any() else math.nan
     out["top1_E"] = float(rank_metrics.top_k(-data.E[rows][v], y[v], obj[v]).mean()) if v.any() else math.nan
     out["top1_random"] = float(rank_metrics.random_top1(y[v], obj[v]).mean()) if v.any() else math.nan
-    out["ece"] = rank_metrics.reliability(p, y)["ece"]
+    out["ece"] = rank_metrics.reliability(p, data.y[rows, -1])["ece"]  # against the rate: what p estimates
     return out
 
 

@@ -10,6 +10,7 @@ import scipy.stats
 import ffcgs_jax as fj
 from ffcgs_jax.core.errors import FfcgsError
 from ffcgs_jax.evaluation.ranking import ranked
+from ffcgs_jax.physics import protocols as physics_protocols
 from ffcgs_jax.physics import robust, runner
 from ffcgs_jax.physics.config import PhysicsConfig, RobustConfig
 from physics_trials import ONE_TRIAL
@@ -75,7 +76,7 @@ def test_a_perturbed_pose_stays_within_its_bounds_of_the_nominal_one():
 def test_wilson_matches_scipy():
     for n in (1, 5, 8, 32):
         for k in range(n + 1):
-            lo, hi = robust.wilson(np.array([k]), n, 0.9)
+            lo, hi = physics_protocols.wilson(np.array([k]), n, 0.9)
             ci = scipy.stats.binomtest(k, n).proportion_ci(confidence_level=0.9, method="wilson")
             assert lo[0] == pytest.approx(max(0.0, ci.low), abs=1e-12)
             assert hi[0] == pytest.approx(min(1.0, ci.high), abs=1e-12)

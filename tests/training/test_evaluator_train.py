@@ -17,6 +17,7 @@ from ffcgs_jax.geometry.config import SDFConfig
 from ffcgs_jax.learning import checkpoint, evaluator
 from ffcgs_jax.learning.config import EvaluatorNetConfig
 from ffcgs_jax.learning.weights import load_evaluator
+from ffcgs_jax.physics.protocols import wilson
 from ffcgs_jax.synthesis import prediction
 from ffcgs_jax.training import evaluator_data, evaluator_train
 from ffcgs_jax.training.config import CVConfig, EvaluatorDataConfig, EvaluatorOptimConfig, EvaluatorTrainConfig
@@ -137,3 +138,26 @@ def test_unlabelled_files_are_refused(tmp_path, svh, box_sdf):
     f = w.finish(expected=[rec.record_id])
     with pytest.raises(FfcgsError, match="keep all"):
         evaluator_data.load(f, svh, progress=False)
+
+
+def test_robust_records_give_rates_as_targets_and_holds_as_positives():
+    rng = np.random.default_rng(3)
+    trials = {p: rng.random((20, 8)) < q for p, q in (("lift_shake", 0.9), ("six_dir", 0.6), ("dexgraspbench", 0.8))}
+    arrays = {}
+    for p, t in trials.items():
+        passed = t.sum(1)
+        lo, _ = wilson(passed, 8, 0.9)
+        arrays.update({f"{p}_trials": t, f"{p}_rate": passed / 8, f"{p}_success": lo >= 0.5})
+    keys = [f"{p}_success" for p in trials]
+    y, hit = evaluator_data.targets(arrays, keys)
+    np.testing.assert_allclose(y[:, :3], np.stack([trials[p].mean(1) for p in trials], 1), atol=1e-7)
+    # "all" is lift-shake and six-dir passed in the same trial; DexGraspBench is its own head, not part of it
+    joint = (trials["lift_shake"] & trials["six_dir"]).sum(1)
+    np.testing.assert_allclose(y[:, 3], joint / 8, atol=1e-7)
+    assert hit[:, 3].tolist() == (joint >= 7).tolist()  # the 7-of-8 rule at the default confidence
+    assert hit[:, :3].tolist() == np.stack([arrays[k] for k in keys], 1).tolist()
+    # a single-trial record: its outcomes, 0/1, as before (and "all" over lift-shake and six-dir only)
+    single = {k: arrays[k] for k in keys}
+    y1, hit1 = evaluator_data.targets(single, keys)
+    assert set(np.unique(y1)) <= {0.0, 1.0} and (y1 > 0.5).tolist() == hit1.tolist()
+    assert hit1[:, 3].tolist() == (single["lift_shake_success"] & single["six_dir_success"]).tolist()
