@@ -120,12 +120,12 @@ def hand_sha256(spec) -> str:
 
 def weights_sha256(cfg, hand_name: str) -> dict[str, str]:
     """{"cvae": ..., "evaluator": ...}: SHA-256 of each weights file `cfg` (a `GraspConfig`) reads for hand
-    `hand_name`, the one given or the one shipped; "none" where there is none (a sampler other than the CVAE, no
-    shipped file), "missing" for a given file that is not there (the synthesis then says so)."""
-    from ffcgs_jax.learning.weights import shipped_evaluator, shipped_weights
+    `hand_name`, the one given or the one installed or shipped; "none" where there is none (a sampler other than the
+    CVAE, no such file), "missing" for a given file that is not there (the synthesis then says so)."""
+    from ffcgs_jax.learning.weights import default_weights
 
-    def digest(given: str, shipped: Path) -> str:
-        path = Path(given).expanduser() if given else shipped
+    def digest(given: str, default: Path) -> str:
+        path = Path(given).expanduser() if given else default
         if not path.is_file():
             return "missing" if given else "none"
         h = hashlib.sha256()
@@ -135,8 +135,8 @@ def weights_sha256(cfg, hand_name: str) -> dict[str, str]:
         return h.hexdigest()
 
     cvae = cfg.sampler in ("auto", "cvae")
-    return {"cvae": digest(cfg.sampling.weights, shipped_weights(hand_name)) if cvae else "none",
-            "evaluator": digest(cfg.evaluator, shipped_evaluator(hand_name))}
+    return {"cvae": digest(cfg.sampling.weights, default_weights("cvae", hand_name)) if cvae else "none",
+            "evaluator": digest(cfg.evaluator, default_weights("evaluator", hand_name))}
 
 
 def run_key(settings: str, mesh_sha256: str) -> str:

@@ -1,10 +1,14 @@
-"""Weights files of the package's networks: the CVAE's and the success predictor's, the ones shipped per hand, and
-loading any `weights.npz` that `ffcgs train` wrote (`training.train`, `training.evaluator_train`), checked, and the
-one in-process cache of loaded weights (`cached`): a synthesis call must not read a weights file again."""
+"""Weights files of the package's networks: the CVAE's and the success predictor's, the ones shipped per hand and
+the ones a user installed for a hand (`installed_dir`, what `synthesize` takes first), loading any `weights.npz`
+that `ffcgs train` wrote (`training.train`, `training.evaluator_train`), checked (also against the hand's identity,
+`hand.identity`, when the file records it), and the one in-process cache of loaded weights (`cached`): a synthesis
+call must not read a weights file again."""
 
+import os
 from collections.abc import Callable, Hashable
 from importlib import resources
 from pathlib import Path
+from typing import Literal
 
 import cachetools
 
@@ -14,6 +18,8 @@ import numpy as np
 
 from ffcgs_jax.core.config import from_dict
 from ffcgs_jax.core.errors import FfcgsError
+from ffcgs_jax.hand.identity import spec_sha256
+from ffcgs_jax.hand.spec import HandSpec
 from ffcgs_jax.learning import checkpoint, cvae
 from ffcgs_jax.learning.config import ModelConfig
 from ffcgs_jax.runtime import compiled
@@ -42,13 +48,49 @@ def shipped_weights(hand_name: str) -> Path:
     return Path(str(resources.files("ffcgs_jax.learning") / "assets" / "weights" / f"cvae_{hand_name}.npz"))
 
 
-def load_weights(path: str | Path, hand: str | None = None) -> tuple[dict, ModelConfig]:
-    """(params as jax arrays, ModelConfig) from a weights.npz; checks its format and, if given, the hand."""
+Kind = Literal["cvae", "evaluator"]
+
+
+def installed_dir(hand_name: str) -> Path:
+    """Where a hand's own learned parts are installed (`ffcgs learn`): $FFCGS_HOME/hands/NAME, by default
+    $XDG_DATA_HOME/ffcgs (~/.local/share/ffcgs): a user folder, never the package's, so an upgrade keeps them."""
+    home = os.environ.get("FFCGS_HOME")
+    root = Path(home) if home else Path(os.environ.get("XDG_DATA_HOME") or "~/.local/share") / "ffcgs"
+    return root.expanduser() / "hands" / hand_name
+
+
+def default_weights(kind: Kind, hand_name: str) -> Path:
+    """The weights a call uses for `hand_name` when none are named: the installed ones, else the package's (the
+    file may not exist: the hand then samples geometrically, or ranks by E)."""
+    installed = installed_dir(hand_name) / f"{kind}.npz"
+    if installed.is_file():
+        return installed
+    return shipped_weights(hand_name) if kind == "cvae" else shipped_evaluator(hand_name)
+
+
+def check_hand(path, meta: dict, spec: HandSpec | None) -> None:
+    """Refuse weights learned for another version of the hand (its spec or MJCF changed), in one line. Files
+    without the record (written before it existed) pass on the hand's name alone."""
+    want = meta.get("hand_sha256")
+    if spec is None or want is None:
+        return
+    now = spec_sha256(spec)
+    if want != now:
+        raise FfcgsError(f"{path} was learned for another version of hand {spec.name!r} (its spec or MJCF changed "
+                         f"since: hand sha256 {want[:12]}, now {now[:12]}); learn it again (`ffcgs learn`) or "
+                         "remove the file")
+
+
+def load_weights(path: str | Path, hand: str | None = None, spec: HandSpec | None = None
+                 ) -> tuple[dict, ModelConfig]:
+    """(params as jax arrays, ModelConfig) from a weights.npz; checks its format and, if given, the hand (by name,
+    and by `spec`'s identity where the file records one)."""
     tree, meta = checkpoint.load(path)
     if meta.get("format") != WEIGHTS_FORMAT or "params" not in tree:
         raise FfcgsError(f"{path} is not a CVAE weights file (format {meta.get('format')!r}, want {WEIGHTS_FORMAT})")
     if hand is not None and meta.get("hand") != hand:
         raise FfcgsError(f"{path} was trained for hand {meta.get('hand')!r}, not {hand!r}")
+    check_hand(path, meta, spec)
     if "model" not in meta:
         raise FfcgsError(f"{path} is not a CVAE weights file: its metadata has no model config")
     try:
@@ -86,6 +128,7 @@ def load_evaluator(path: str | Path, hand) -> tuple[dict, dict]:
                          f"{EVALUATOR_FORMAT})")
     if meta.get("hand") != hand.spec.name:
         raise FfcgsError(f"{path} was trained for hand {meta.get('hand')!r}, not {hand.spec.name!r}")
+    check_hand(path, meta, hand.spec)
     if meta.get("feature_version") != evaluator.FEATURE_VERSION:
         raise FfcgsError(f"{path} was trained on predictor features v{meta.get('feature_version')}, this version "
                          f"computes v{evaluator.FEATURE_VERSION}: train it again")

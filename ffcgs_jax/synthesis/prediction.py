@@ -16,7 +16,7 @@ import numpy as np
 
 from ffcgs_jax.core.errors import FfcgsError
 from ffcgs_jax.learning import evaluator
-from ffcgs_jax.learning.weights import cached, load_evaluator, shipped_evaluator
+from ffcgs_jax.learning.weights import cached, default_weights, load_evaluator
 from ffcgs_jax.runtime import COMPILED_MAX, compiled, progress
 from ffcgs_jax.runtime.fixed_shapes import pad_rows
 from ffcgs_jax.synthesis.config import RANKS
@@ -35,14 +35,14 @@ def _load(path: str, hand) -> tuple[dict, dict]:
 
 
 def weights_for(hand, path: str = "") -> tuple[dict, dict] | None:
-    """(weights, metadata) of the predictor `path` names, or the one shipped for `hand` when `path` is ""; None
-    when none ships for the hand. A file that is named but missing or wrong is one line (FfcgsError)."""
+    """(weights, metadata) of the predictor `path` names, or the one installed or shipped for `hand` when `path`
+    is ""; None when there is none for the hand. A file that is named but missing or wrong is one line (FfcgsError)."""
     if path:
         if not Path(path).expanduser().is_file():
             raise FfcgsError(f"evaluator weights not found: {path}")
         return _load(str(Path(path).expanduser()), hand)
-    shipped = shipped_evaluator(hand.spec.name)
-    return _load(str(shipped), hand) if shipped.is_file() else None
+    found = default_weights("evaluator", hand.spec.name)
+    return _load(str(found), hand) if found.is_file() else None
 
 
 def resolve(rank: str, hand, path: str = "") -> tuple[str, tuple[dict, dict] | None]:
@@ -51,7 +51,8 @@ def resolve(rank: str, hand, path: str = "") -> tuple[str, tuple[dict, dict] | N
         raise FfcgsError(f"rank must be one of {', '.join(RANKS)}, got {rank!r}")
     found = weights_for(hand, path)
     if rank == "predicted" and found is None:
-        raise FfcgsError(f"rank 'predicted' needs a success predictor, and none ships for hand {hand.spec.name}; "
+        raise FfcgsError(f"rank 'predicted' needs a success predictor, and none is installed or ships for hand "
+                         f"{hand.spec.name}; "
                          "train one (`ffcgs train --model evaluator`) and pass it with --evaluator, or rank by "
                          "energy")
     return ("energy" if rank == "energy" or found is None else "predicted"), found

@@ -30,7 +30,7 @@ from ffcgs_jax.hand.kinematics import Hand
 from ffcgs_jax.hand.sites import default_standoff, palm_centre_root
 from ffcgs_jax.core.files import check_file
 from ffcgs_jax.learning import cvae
-from ffcgs_jax.learning.weights import cached, load_weights, shipped_weights
+from ffcgs_jax.learning.weights import cached, default_weights, load_weights
 from ffcgs_jax.synthesis import filters as F
 from ffcgs_jax.runtime import sharding
 from ffcgs_jax.synthesis.config import SAMPLERS, SamplerConfig
@@ -339,23 +339,23 @@ def make_sampler(
 
 def for_hand(name: str, hand: Hand, cfg: SamplerConfig) -> tuple[str, SamplerConfig]:
     """The sampler name and options with the hand-dependent defaults filled in: "auto" becomes "cvae" where
-    weights ship for the hand or `cfg.weights` names a file, else "geometric"; a standoff of 0 becomes
+    weights are installed or ship for the hand or `cfg.weights` names a file, else "geometric"; a standoff of 0 becomes
     `hand.sites.default_standoff(hand)`."""
     if name == "auto":
-        name = "cvae" if cfg.weights or shipped_weights(hand.spec.name).is_file() else "geometric"
+        name = "cvae" if cfg.weights or default_weights("cvae", hand.spec.name).is_file() else "geometric"
     if cfg.standoff == 0:
         cfg = dataclasses.replace(cfg, standoff=default_standoff(hand))
     return name, cfg
 
 
 def weights_path(hand: Hand, weights: str = "") -> Path:
-    """The cvae weights file: `weights` if given, else the one shipped for this hand."""
+    """The cvae weights file: `weights` if given, else the one installed or shipped for this hand."""
     if weights:
         return Path(weights)
-    path = shipped_weights(hand.spec.name)
+    path = default_weights("cvae", hand.spec.name)
     if not path.is_file():
-        raise FfcgsError(f"no cvae weights ship for hand {hand.spec.name!r}; train them (python -m train.sampler) "
-                         f"and pass the weights.npz as sampling.weights")
+        raise FfcgsError(f"no cvae weights are installed or ship for hand {hand.spec.name!r}; learn them (`ffcgs "
+                         f"learn`, or python -m train.sampler and pass the weights.npz as sampling.weights)")
     return path
 
 
@@ -366,7 +366,7 @@ def sampler_params(name: str, hand: Hand, cfg: SamplerConfig, dtype=None) -> tup
         return None, None
     path = check_file(weights_path(hand, cfg.weights), "cvae weights file")
     hand_name = hand.spec.name
-    loaded = lambda: load_weights(path, hand_name)  # noqa: E731
+    loaded = lambda: load_weights(path, hand_name, hand.spec)  # noqa: E731
     if dtype is None:
         params, model = cached(path, ("cvae", hand_name), loaded)
     else:

@@ -30,6 +30,7 @@ from ffcgs_jax.core.errors import FfcgsError
 from ffcgs_jax.core.version import __version__
 from ffcgs_jax.evaluation import rank_metrics
 from ffcgs_jax.hand import kinematics as K
+from ffcgs_jax.hand.identity import spec_sha256
 from ffcgs_jax.kernels.adam import AdamState, adam_update
 from ffcgs_jax.learning import checkpoint, evaluator
 from ffcgs_jax.learning import layers as nn
@@ -99,8 +100,9 @@ def figures(prob: np.ndarray, data: evaluator_data.LabelData, rows: np.ndarray) 
     return out
 
 
-def weights_meta(cfg: EvaluatorTrainConfig, hand_name: str, heads, width: int, extra: dict) -> dict:
-    return {"format": EVALUATOR_FORMAT, "version": __version__, "hand": hand_name, "heads": list(heads),
+def weights_meta(cfg: EvaluatorTrainConfig, hand: K.Hand, heads, width: int, extra: dict) -> dict:
+    return {"format": EVALUATOR_FORMAT, "version": __version__, "hand": hand.spec.name,
+            "hand_sha256": spec_sha256(hand.spec), "heads": list(heads),
             "feature_version": evaluator.FEATURE_VERSION, "feature_width": width,
             "net": dataclasses.asdict(cfg.net), "train": {"config": to_toml(cfg)} | extra}
 
@@ -140,7 +142,7 @@ def train(cfg: EvaluatorTrainConfig, progress: bool = True, until_epoch: int | N
                "params": nn.num_params(weights["net"]), "backend": jax.default_backend(),
                **{f"train_{k}": v for k, v in train_fig.items()}, **{f"val_{k}": v for k, v in last.items()}}
     checkpoint.save(run.out / "weights.npz", weights,
-                    weights_meta(cfg, hand.spec.name, data.heads, data.x.shape[1],
+                    weights_meta(cfg, hand, data.heads, data.x.shape[1],
                                  {k: summary[k] for k in ("train_grasps", "train_objects", "steps")}))
     files.write_text(run.out / "summary.json", json.dumps(summary, indent=1, default=float))
     plot_metrics(run.log, run.out / "metrics.png", weights, data, val_rows if len(val_rows) else train_rows)

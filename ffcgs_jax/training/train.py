@@ -35,13 +35,13 @@ from ffcgs_jax.learning.weights import WEIGHTS_FORMAT
 from ffcgs_jax.training import data as cvae_data
 from ffcgs_jax.training import harness
 from ffcgs_jax.training.config import KLConfig, TrainConfig, TrainOptimConfig, to_toml
+from ffcgs_jax.hand.identity import spec_sha256
 from ffcgs_jax.training.run import dataset_hand, read_metrics as read_rows, run_folder
 
-def hand_points(hand_name: str) -> tuple[np.ndarray, np.ndarray, str]:
-    """(palm centre (3,), palm tetrahedron (4, 3)) in the hand's root frame, float32, and the hand's full name."""
+def hand_points(hand_name: str) -> tuple[np.ndarray, np.ndarray, K.Hand]:
+    """(palm centre (3,), palm tetrahedron (4, 3)) in the hand's root frame, float32, and the hand."""
     hand = K.load_hand(hand_name)
-    return (sites.palm_centre_root(hand).astype(np.float32), sites.tetrahedron_root(hand).astype(np.float32),
-            hand.spec.name)
+    return sites.palm_centre_root(hand).astype(np.float32), sites.tetrahedron_root(hand).astype(np.float32), hand
 
 
 def batch_loss(params, grids, origin, voxel, pose, key, beta_t, palm_root, tet_root):
@@ -135,9 +135,11 @@ def evaluate(params, data: cvae_data.TrainData, records: np.ndarray, palm_root, 
     return {"rec": float(rec.mean()), "kl": float(kl.mean()), "grasps": int(len(sel))}
 
 
-def weights_meta(cfg: TrainConfig, hand: str, extra: dict) -> dict:
-    """The metadata saved beside trained weights: format, version, hand, model config and training config."""
-    return {"format": WEIGHTS_FORMAT, "version": __version__, "hand": hand, "model": dataclasses.asdict(cfg.model),
+def weights_meta(cfg: TrainConfig, hand: K.Hand, extra: dict) -> dict:
+    """The metadata saved beside trained weights: format, version, hand (name and identity), model config and
+    training config."""
+    return {"format": WEIGHTS_FORMAT, "version": __version__, "hand": hand.spec.name,
+            "hand_sha256": spec_sha256(hand.spec), "model": dataclasses.asdict(cfg.model),
             "train": {"config": to_toml(cfg)} | extra}
 
 
@@ -162,7 +164,7 @@ def train(cfg: TrainConfig, hand: str | None = None, progress: bool = True, unti
     if data.res != cfg.model.res:
         raise FfcgsError(f"the dataset's SDFs are {data.res}^3 but model.res is {cfg.model.res}")
     train_recs, val_recs = cvae_data.split(data, cfg.cv.folds, cfg.cv.fold, cfg.seed)
-    palm_root, tet_root, hand_name = hand_points(dataset_hand(cfg.data.path, hand or cfg.hand))
+    palm_root, tet_root, the_hand = hand_points(dataset_hand(cfg.data.path, hand or cfg.hand))
     palm_root, tet_root = jnp.asarray(palm_root), jnp.asarray(tet_root)
     grids = (jnp.asarray(data.grids), jnp.asarray(data.origin), jnp.asarray(data.voxel_size))
     task = cvae_task(cfg, data, train_recs, val_recs, grids, palm_root, tet_root)
@@ -186,7 +188,7 @@ def train(cfg: TrainConfig, hand: str | None = None, progress: bool = True, unti
         "backend": jax.default_backend(),
     }
     checkpoint.save(run.out / "weights.npz", {"params": params},
-                    weights_meta(cfg, hand_name, {k: summary[k] for k in ("train_rec", "val_rec", "steps")}))
+                    weights_meta(cfg, the_hand, {k: summary[k] for k in ("train_rec", "val_rec", "steps")}))
     files.write_text(run.out / "summary.json", json.dumps(summary, indent=1))
     plot_metrics(run.log, run.out / "metrics.png")
     return summary

@@ -12,6 +12,7 @@ import pytest
 
 from ffcgs_jax.core.config import load
 from ffcgs_jax.core.errors import FfcgsError
+from ffcgs_jax.hand import kinematics as K
 from ffcgs_jax.learning import checkpoint
 from ffcgs_jax.training import data as cvae_data
 from ffcgs_jax.training import train as cvae_train
@@ -170,7 +171,7 @@ def weights32(tmp_path_factory):
     cfg = TrainConfig(model=ModelConfig(width=2, features=4, head=4, mlp=8))
     params = jax.tree.map(lambda x: np.asarray(x, np.float32), cvae.init(jax.random.key(0), cfg.model))
     path = tmp_path_factory.mktemp("w") / "weights.npz"
-    checkpoint.save(path, {"params": params}, cvae_train.weights_meta(cfg, "schunk_svh_right", {}))
+    checkpoint.save(path, {"params": params}, cvae_train.weights_meta(cfg, K.load_hand("svh"), {}))
     return path
 
 
