@@ -2,7 +2,7 @@
 
 The public API is the handful of names below; each is imported on first use, so `import ffcgs_jax` stays fast
 (no JAX, MuJoCo or trimesh until a name is touched). Everything else lives in the subpackages, one per stage:
-`hand`, `geometry`, `learning`, `synthesis`, `evaluation`, `physics`, `dataset`, `viz`, `cli`
+`hand`, `geometry`, `learning`, `synthesis`, `evaluation`, `physics`, `dataset`, `training`, `learn`, `viz`, `cli`
 (docs/architecture.md).
 
     import ffcgs_jax as fj
@@ -68,6 +68,8 @@ _API = {
     "TrainConfig": ("ffcgs_jax.training.config", "TrainConfig"),
     "train_evaluator": ("ffcgs_jax.training.evaluator_train", "train"),
     "EvaluatorTrainConfig": ("ffcgs_jax.training.config", "EvaluatorTrainConfig"),
+    "learn_hand": ("ffcgs_jax.learn.pipeline", "learn_hand"),
+    "LearnConfig": ("ffcgs_jax.learn.config", "LearnConfig"),
     "FfcgsError": ("ffcgs_jax.core.errors", "FfcgsError"),
     "enable_compilation_cache": ("ffcgs_jax.runtime.jax_cache", "enable"),
     "clear_compiled": ("ffcgs_jax.runtime.compiled", "clear_compiled"),
@@ -98,6 +100,8 @@ if TYPE_CHECKING:  # what the lazy names are, for type checkers and editors
     from ffcgs_jax.training.config import EvaluatorTrainConfig, TrainConfig  # noqa: F401
     from ffcgs_jax.training.evaluator_train import train as train_evaluator  # noqa: F401
     from ffcgs_jax.training.train import train as train_sampler  # noqa: F401
+    from ffcgs_jax.learn.config import LearnConfig  # noqa: F401
+    from ffcgs_jax.learn.pipeline import learn_hand  # noqa: F401
     from ffcgs_jax.physics.config import PROTOCOLS, PhysicsConfig, RobustConfig  # noqa: F401
     from ffcgs_jax.physics.evaluate_physics import evaluate_grasps as evaluate_physics  # noqa: F401
     from ffcgs_jax.physics.validate import validate  # noqa: F401

@@ -40,6 +40,9 @@ TINY = {
                       "--planner.population", "16", "--planner.steps", "5", "--planner.refine", "8",
                       "--grasp.optim.iters", "5", "--physics-chunk", "4"],
     "dataset info": [],
+    "learn": ["--minutes", "0", "--train-objects", "3", "--held-out", "2", "--per-object", "8", "--cvae-epochs", "1",
+              "--predictor-epochs", "2", "--grasp.sdf.res", "16", "--grasp.optim.iters", "5",
+              "--physics.robust.trials", "1", "--engine", "plain"],
     "train.sampler": ["--optim.epochs", "1", "--optim.batch", "4", "--model.res", "16", "--model.width", "2",
                       "--model.features", "4", "--model.head", "4", "--model.mlp", "8", "--steps-per-call", "1",
                       "--log-every", "1"],
@@ -181,6 +184,7 @@ def follow(workdir: Path, marks: tuple[str, ...]) -> list[tuple[str, float]]:
     line through them), so `ffcgs dataset build` keeps no grasp of it. Before the training step, an empty
     dataset is replaced by a synthetic one of the same hand."""
     env = dict(os.environ, JAX_PLATFORMS="cpu", FFCGS_JAX_CACHE="off", FFCGS_CACHE_DIR=str(workdir / "cache"),
+               FFCGS_HOME=str(workdir / "home"),
                PYTHONPATH=os.pathsep.join(filter(None, [str(REPO), os.environ.get("PYTHONPATH")])))
     namespace: dict = {"__name__": "__guide__"}
     timings = []
@@ -217,6 +221,10 @@ def test_the_guide_runs_on_the_toy_hand(workdir, capsys):
 
     with np.load(workdir / "grasps.npz") as g:
         assert g["q"].shape == (8, 2) and g["contacts"].shape == (8, 2, 3)
+    # section 7: the toy never holds an object, so its learn run reports that and installs nothing
+    report = (workdir / "learn_my_hand" / "report.md").read_text()
+    assert "keeps it" in report and (workdir / "learn_my_hand" / "report.png").is_file()
+    assert not (workdir / "home" / "hands").exists()
     print("\n".join(f"{s:7.1f} s  {step}" for step, s in timings))
 
 

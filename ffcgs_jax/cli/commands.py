@@ -21,10 +21,12 @@ from ffcgs_jax.cli.dataset_commands import (DatasetExportCmd, DatasetInfoCmd, Da
 from ffcgs_jax.cli.depth_commands import FuseCmd, RenderDepthCmd, run_fuse, run_render_depth
 from ffcgs_jax.cli.grasp_object import not_the_recorded_object, recorded_object
 from ffcgs_jax.cli.hand_command import HandCmd, run_hand
+from ffcgs_jax.cli.learn_command import run_learn
 from ffcgs_jax.cli.show_command import ShowCmd, run_show
 from ffcgs_jax.dataset.config import DatasetConfig
 from ffcgs_jax.core.errors import FfcgsError
 from ffcgs_jax.geometry.config import SDFConfig
+from ffcgs_jax.learn.config import LearnConfig
 from ffcgs_jax.cli.output_plan import Input, Output, Plan
 from ffcgs_jax.physics.config import ALL_PROTOCOLS, PROTOCOLS, PhysicsConfig
 from ffcgs_jax.synthesis.config import GraspConfig
@@ -535,6 +537,7 @@ PLANS: dict[str, Callable[..., Plan]] = {
                                      (Output("--out", c.out, "npz" if c.out.lower().endswith(".npz") else "folder"),),
                                      c.overwrite),
     "dataset merge": lambda c: Plan((), (Output("out", c.out, "mcap"),)),
+    "learn": lambda c: Plan((Input("hand", c.hand), Input("--objects", c.objects or None, folder=True))),
 }
 
 COMMANDS: dict[str, tuple[type, Callable]] = {
@@ -551,4 +554,5 @@ COMMANDS: dict[str, tuple[type, Callable]] = {
     "dataset info": (DatasetInfoCmd, run_dataset_info),
     "dataset export": (DatasetExportCmd, run_dataset_export),
     "dataset merge": (DatasetMergeCmd, run_dataset_merge),
+    "learn": (LearnConfig, run_learn),
 }

@@ -17,7 +17,7 @@ import warnings
 
 # Composite configs whose nested sections share field names (seed, filters) keep their prefixes on the command
 # line: `ffcgs dataset build --per-object 200 --planner.population 4096 --physics.sim-friction 0.6`.
-_PREFIXED = {"dataset build"}
+_PREFIXED = {"dataset build", "learn"}
 
 
 def _usage() -> str:

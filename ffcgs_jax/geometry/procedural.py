@@ -17,7 +17,8 @@ KINDS = ("box", "cylinder", "ellipsoid", "capsule")
 HELD_OUT_SEEDS = {1000: "bench/quality.py's unseen procedural shapes",
                   2000: "the complex family of bench/quality.py and bench/validated_call.py",
                   3200: "bench/diverse_objects.py's set",
-                  4500: "bench/robust_verdict.py's complex shapes and the robust predictor's held-out labels"}
+                  4500: "bench/robust_verdict.py's complex shapes and the robust predictor's held-out labels",
+                  4600: "the held-out complex shapes of every `ffcgs learn` report"}
 """Seeds whose shapes the benchmarks report on: never training data (`dataset.objects.sources` refuses them)."""
 
 

@@ -3,23 +3,18 @@ version of the hand in one line, and weights installed in the user folder that `
 
 import shutil
 
-import jax
-import numpy as np
 import pytest
 
 from ffcgs_jax.core.errors import FfcgsError
 from ffcgs_jax.hand import kinematics as K
 from ffcgs_jax.hand.identity import spec_sha256
 from ffcgs_jax.hand.spec import load_spec
-from ffcgs_jax.learning import checkpoint, cvae, evaluator, weights
-from ffcgs_jax.learning.config import ModelConfig
+from ffcgs_jax.learning import checkpoint, weights
 from ffcgs_jax.synthesis import prediction, samplers
 from ffcgs_jax.synthesis.config import SamplerConfig
-from ffcgs_jax.training import evaluator_train
-from ffcgs_jax.training import train as cvae_train
-from ffcgs_jax.training.config import EvaluatorTrainConfig, TrainConfig
 
 from paths import REPO
+from weights_toy import cvae_file, evaluator_file
 
 TOY = REPO / "tests" / "data" / "toy_hand"
 
@@ -44,21 +39,6 @@ def test_identity_follows_the_hand_not_its_files(tmp_path):
     hashes = {here, *(spec_sha256(load_spec(p)) for p in (longer, limit, tip))}
     assert len(hashes) == 4
     assert spec_sha256(load_spec("svh")) != spec_sha256(load_spec("allegro"))
-
-
-def cvae_file(path, hand) -> None:
-    cfg = TrainConfig(hand=str(hand), model=ModelConfig(width=2, features=4, head=4, mlp=8))
-    params = jax.tree.map(lambda x: np.asarray(x, np.float32), cvae.init(jax.random.key(0), cfg.model))
-    checkpoint.save(path, {"params": params}, cvae_train.weights_meta(cfg, hand, {}))
-
-
-def evaluator_file(path, hand) -> None:
-    cfg = EvaluatorTrainConfig()
-    net = evaluator.init(jax.random.key(0), evaluator.feature_width(hand), 3, cfg.net.hidden, cfg.net.depth)
-    norm = {"mean": np.zeros(evaluator.feature_width(hand), np.float32),
-            "scale": np.ones(evaluator.feature_width(hand), np.float32)}
-    meta = evaluator_train.weights_meta(cfg, hand, ("lift_shake", "six_dir", "all"), evaluator.feature_width(hand), {})
-    checkpoint.save(path, {"net": jax.tree.map(np.asarray, net), "norm": norm}, meta)
 
 
 def test_weights_of_another_version_of_the_hand_are_refused_in_one_line(tmp_path):

@@ -1,0 +1,220 @@
+"""`learn_hand`: from a hand spec to its learned sampler and ranker, in stages that a rerun resumes.
+
+    check          the spec, the MJCF and its physics scene (one line on any problem)
+    held_geometric the held-out objects' candidates from the geometric sampler, labelled (robust verdicts, three
+                   protocols): the report's baseline, and the time per object that sizes the run to its budget
+    plan           the training object count that fits the budget (said in one line)
+    labels         the training objects' candidates, labelled (the data engine: `dataset.build`)
+    cvae           the CVAE trained on the robust successes (`training.train`)
+    predictor      the success predictor trained on every label (`training.evaluator_train`)
+    held_learned   the held-out objects' candidates from the new CVAE, labelled
+    report         report.md, report.json, report.png: held-out first grasps, learned against geometric + E
+    install        the parts that beat the geometric sampler copied to the user folder (`weights.installed_dir`)
+
+Each stage records its result in OUT/state.json when it ends; the builds keep every finished object in their
+parts folders and the trainings checkpoint every epoch, so a killed run, started again with the same command,
+ends where an uninterrupted one would. A folder started for another version of the hand, or with other settings,
+is refused in one line.
+"""
+
+import dataclasses
+import errno
+import json
+import shutil
+import statistics
+import time
+from pathlib import Path
+
+from ffcgs_jax.core import files
+from ffcgs_jax.core.config import check_all
+from ffcgs_jax.core.errors import FfcgsError
+from ffcgs_jax.dataset import build as dataset_build
+from ffcgs_jax.dataset.objects import sources
+from ffcgs_jax.hand import kinematics as K
+from ffcgs_jax.hand.identity import spec_sha256
+from ffcgs_jax.learn import plan, report
+from ffcgs_jax.learn.config import LearnConfig
+from ffcgs_jax.learning.config import ModelConfig
+from ffcgs_jax.learning.weights import installed_dir
+
+STAGES = ("check", "held_geometric", "plan", "labels", "cvae", "predictor", "held_learned", "report", "install")
+
+
+class State:
+    """OUT/state.json: the hand's identity, the settings, and each finished stage's result."""
+
+    def __init__(self, work: Path, hand_sha: str, settings: dict):
+        self.path = work / "state.json"
+        self.data = {"hand_sha256": hand_sha, "settings": settings, "stages": {}}
+        if self.path.is_file():
+            old = json.loads(self.path.read_text())
+            if old.get("hand_sha256") != hand_sha:
+                raise FfcgsError(f"{work} was started for another version of this hand (its spec or MJCF changed); "
+                                 "use another --out, or remove the folder to start again")
+            if old.get("settings") != settings:
+                diff = sorted(k for k in set(settings) | set(old.get("settings", {}))
+                              if settings.get(k) != old.get("settings", {}).get(k))
+                raise FfcgsError(f"{work} was started with other settings ({', '.join(diff)}); run with the same "
+                                 "settings to resume it, or use another --out")
+            self.data = old
+
+    def done(self, stage: str) -> dict | None:
+        return self.data["stages"].get(stage)
+
+    def finish(self, stage: str, result: dict) -> dict:
+        self.data["stages"][stage] = result
+        files.write_text(self.path, json.dumps(self.data, indent=1, default=str))
+        return result
+
+
+def settings_of(cfg: LearnConfig) -> dict:
+    """The settings a folder is resumed with: everything but the folder, the budget and whether to install."""
+    d = json.loads(json.dumps(dataclasses.asdict(cfg), default=str))
+    for k in ("out", "install", "minutes"):
+        d.pop(k)
+    return d
+
+
+def learn_hand(cfg: LearnConfig = LearnConfig(), progress: bool = True, stop_after: str | None = None) -> dict:
+    """Run (or resume) the stages; returns the report's figures (`report.json`) and where the weights went."""
+    if not isinstance(cfg, LearnConfig):
+        raise FfcgsError(f"learn_hand takes a LearnConfig, got {type(cfg).__name__}")
+    check_all(cfg)
+    if stop_after is not None and stop_after not in STAGES:
+        raise FfcgsError(f"stop_after must be one of {', '.join(STAGES)}, got {stop_after!r}")
+    hand = K.load_hand(cfg.hand)
+    work = Path(cfg.folder(hand.spec.name)).expanduser()
+    files.check_folder(work, "--out folder")
+    work.mkdir(parents=True, exist_ok=True)
+    state = State(work, spec_sha256(hand.spec), settings_of(cfg))
+    t0 = time.perf_counter()
+    say = (lambda m: print(f"ffcgs learn: {m}", flush=True)) if progress else (lambda m: None)
+    runs = {
+        "check": lambda: check(cfg, hand),
+        "held_geometric": lambda: held_labels(cfg, hand, work, "geometric", progress),
+        "plan": lambda: planned(cfg, state, t0),
+        "labels": lambda: labels(cfg, hand, work, state.done("plan")["objects"], progress),
+        "cvae": lambda: train_cvae(cfg, hand, work, progress),
+        "predictor": lambda: train_predictor(cfg, work, progress),
+        "held_learned": lambda: held_learned(cfg, hand, work, state, progress),
+        "report": lambda: report.write(cfg, hand, work, state.data["stages"]),
+        "install": lambda: install(cfg, hand, work, state.done("report")),
+    }
+    for i, stage in enumerate(STAGES):
+        if state.done(stage) is None:
+            say(f"stage {i + 1}/{len(STAGES)}: {stage}")
+            try:
+                result = runs[stage]()
+            except OSError as e:
+                if e.errno != errno.ENOSPC:
+                    raise
+                raise FfcgsError(f"the disk is full (stage {stage}, in {work}); free some space and run the same "
+                                 "command again: it resumes") from None
+            result = state.finish(stage, result | {"seconds": round(time.perf_counter() - t0, 1)})
+            if result.get("say"):
+                say(result["say"])
+        if stage == stop_after:
+            break
+    return state.data["stages"].get("report", {}) | {"installed": (state.done("install") or {}).get("installed")}
+
+
+def check(cfg: LearnConfig, hand: K.Hand) -> dict:
+    """The physics scene of the hand beside a built-in box: actuators, contacts, the MJCF compiling with an object."""
+    from ffcgs_jax.geometry import mesh_io
+    from ffcgs_jax.physics import convex, scene
+
+    mesh = mesh_io.load_mesh("box")
+    scene.build(hand.spec, mesh, convex.decompose(mesh, cfg.physics), cfg.physics, table_z=0.0)
+    return {"hand": hand.spec.name, "scale": plan.scale(hand), "say": f"hand {hand.spec.name}: spec, MJCF and "
+            f"physics scene checked; objects scaled by {plan.scale(hand):.2f} x the SVH's"}
+
+
+def _build(dc, progress: bool) -> dict:
+    out = dataset_build.build(dc, show_progress=progress)
+    if out.get("out") is None:
+        raise FfcgsError(f"the build {dc.out} is missing {out.get('missing')} records (another shard's?)")
+    return {"out": str(out["out"]), "built": out["built"], "timing": out["timing"]}
+
+
+def held_labels(cfg: LearnConfig, hand: K.Hand, work: Path, sampler: str, progress: bool, grasp=None) -> dict:
+    builds = plan.held_out(cfg, hand, str(work / f"held_{sampler}.mcap"), sampler, grasp)
+    done = [_build(dc, progress) for dc in builds]
+    rows = [json.loads(line) for d in done for line in Path(d["timing"]).read_text().splitlines() if line.strip()]
+    # the first object of a process pays the compiles: the others say what one more object costs
+    per_object = statistics.median(r["total_s"] for r in (rows[1:] or rows)) if rows else 0.0
+    return {"files": [d["out"] for d in done], "seconds_per_object": per_object,
+            "objects": sorted({r["object"] for r in rows})}
+
+
+def planned(cfg: LearnConfig, state: State, t0: float) -> dict:
+    n, why = plan.fitting_objects(cfg, state.done("held_geometric")["seconds_per_object"], time.perf_counter() - t0)
+    return {"objects": n, "say": why}
+
+
+def labels(cfg: LearnConfig, hand: K.Hand, work: Path, count: int, progress: bool) -> dict:
+    dc = plan.training(cfg, hand, str(work / "labels.mcap"), count)
+    held = {s.sha256 for h in plan.held_out(cfg, hand, str(work / "held_geometric.mcap")) for s in sources(h)}
+    shared = [s.name for s in sources(dc) if s.sha256 in held]
+    if shared:  # the report would measure objects the networks learned
+        raise FfcgsError(f"training objects {shared[:3]} are also held out; use another --seed or --objects folder")
+    return _build(dc, progress)
+
+
+def train_cvae(cfg: LearnConfig, hand: K.Hand, work: Path, progress: bool) -> dict:
+    from ffcgs_jax.training import data as cvae_data
+    from ffcgs_jax.training import train
+    from ffcgs_jax.training.config import CVConfig, DataConfig, TrainConfig, TrainOptimConfig
+
+    path = work / "labels.mcap"
+    try:
+        data = cvae_data.load(path)
+    except FfcgsError as e:  # no record holds a robust success: nothing to learn a sampler from
+        return {"weights": None, "say": f"no CVAE: {e}"}
+    tc = TrainConfig(out=str(work / "runs" / "cvae"), hand=cfg.hand, data=DataConfig(path=str(path)),
+                     model=dataclasses.replace(ModelConfig(), res=cfg.grasp.sdf.res), cv=CVConfig(fold=-1),
+                     optim=TrainOptimConfig(epochs=cfg.cvae_epochs))
+    summary = train.train(tc, progress=progress, data=data)
+    return {"weights": str(Path(tc.out) / "weights.npz"), "train_grasps": summary["train_grasps"],
+            "say": f"CVAE trained on {summary['train_grasps']} robust successes, {cfg.cvae_epochs} epochs"}
+
+
+def train_predictor(cfg: LearnConfig, work: Path, progress: bool) -> dict:
+    from ffcgs_jax.training import evaluator_data, evaluator_train
+    from ffcgs_jax.training.config import (CVConfig, EvaluatorDataConfig, EvaluatorOptimConfig,
+                                           EvaluatorTrainConfig)
+
+    hand = K.load_hand(cfg.hand)
+    data = evaluator_data.load(work / "labels.mcap", hand, progress)
+    # a small build (a short budget, a test) still trains: at least 4 steps an epoch
+    batch = max(1, min(EvaluatorOptimConfig().batch, len(data.x) // 4))
+    ec = EvaluatorTrainConfig(out=str(work / "runs" / "predictor"), hand=cfg.hand,
+                              data=EvaluatorDataConfig(str(work / "labels.mcap")), cv=CVConfig(fold=-1),
+                              optim=EvaluatorOptimConfig(epochs=cfg.predictor_epochs, batch=batch))
+    summary = evaluator_train.train(ec, progress=progress, data=data)
+    return {"weights": str(Path(ec.out) / "weights.npz"), "train_grasps": summary["train_grasps"],
+            "say": f"success predictor trained on {summary['train_grasps']} labels, {cfg.predictor_epochs} epochs"}
+
+
+def held_learned(cfg: LearnConfig, hand: K.Hand, work: Path, state: State, progress: bool) -> dict:
+    weights = state.done("cvae")["weights"]
+    if weights is None:
+        return {"files": [], "say": "no learned sampler to label on the held-out objects"}
+    grasp = dataclasses.replace(cfg.grasp, sampling=dataclasses.replace(cfg.grasp.sampling, weights=weights))
+    return held_labels(cfg, hand, work, "cvae", progress, grasp)
+
+
+def install(cfg: LearnConfig, hand: K.Hand, work: Path, rep: dict) -> dict:
+    """Copy the parts the report chose into the user folder (both, the predictor alone, or nothing)."""
+    parts = rep["install"]
+    if not parts or not cfg.install:
+        why = "the geometric sampler ranked by E did as well on the held-out objects" if not parts \
+            else "--no-install"
+        return {"installed": None, "say": f"nothing installed: {why}"}
+    folder = installed_dir(hand.spec.name)
+    folder.mkdir(parents=True, exist_ok=True)
+    for kind in ("cvae", "evaluator"):
+        (folder / f"{kind}.npz").unlink(missing_ok=True)  # a part not chosen must not stay from an earlier run
+    for kind in parts:
+        shutil.copyfile(rep["weights"][kind], folder / f"{kind}.npz")
+    return {"installed": str(folder), "parts": parts,
+            "say": f"installed {' and '.join(parts)} for hand {hand.spec.name} in {folder}"}

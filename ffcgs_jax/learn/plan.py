@@ -1,0 +1,83 @@
+"""What a learn run builds: the hand's object scale, the dataset configs of its training and held-out objects, and
+how many training objects fit its time budget.
+
+Objects are scaled to the hand: the SVH's training shapes are 0.8-1.2 of their generated size, and another hand's
+are that times the ratio of its span to the SVH's (the farthest fingertip contact from the palm, open hand), so a
+hand half the SVH's size grasps shapes half the size. The held-out objects are the folder's test split and complex shapes of
+`config.HELD_OUT_SEED`, never a training seed (the dataset refuses held-out seeds without `allow_test`, and the
+run checks that no held-out object shares a name or geometry with a training one).
+"""
+
+import dataclasses
+import math
+
+import jax.numpy as jnp
+import numpy as np
+
+from ffcgs_jax.core.errors import FfcgsError
+from ffcgs_jax.dataset.config import DatasetConfig
+from ffcgs_jax.hand import kinematics as K
+from ffcgs_jax.learn.config import HELD_OUT_SEED, LearnConfig
+
+SHARES = {"labels": 0.6, "cvae": 0.15, "predictor": 0.05}
+"""Budget shares after the held-out labels; the rest (0.2) is the learned candidates' held-out labels and report."""
+SIMPLE_SHARE = 0.25  # of the generated training shapes: boxes, cylinders, ...; the rest complex
+FEWEST_OBJECTS = 4  # below this a budget trains nothing worth reporting
+
+
+def span(hand: K.Hand) -> float:
+    """The open hand's farthest fingertip contact from the palm site (m)."""
+    frames = K.forward_kinematics(hand, jnp.eye(4, dtype=hand.lower.dtype), hand.lower)
+    return float(np.max(np.linalg.norm(np.asarray(frames.contacts) - np.asarray(frames.palm_pos), axis=1)))
+
+
+def scale(hand: K.Hand) -> float:
+    """The hand's size relative to the SVH's (`span`), within [0.25, 4]."""
+    return float(np.clip(span(hand) / span(K.load_hand("svh")), 0.25, 4.0))
+
+
+def dataset(cfg: LearnConfig, hand: K.Hand, out: str, **kw) -> DatasetConfig:
+    """A labelled build (`keep all`, robust verdicts, three protocols) of this run: `kw` picks its objects."""
+    s = scale(hand)
+    base = DatasetConfig(hand=cfg.hand, out=out, keep="all", per_object=cfg.per_object, rotations=1,
+                         scale_min=0.8 * s, scale_max=1.2 * s, engine=cfg.engine, address=cfg.address,
+                         grasp=cfg.grasp, physics=cfg.physics, sampler="geometric")
+    return dataclasses.replace(base, **kw)
+
+
+def training(cfg: LearnConfig, hand: K.Hand, out: str, count: int) -> DatasetConfig:
+    simple = int(round(count * SIMPLE_SHARE))
+    return dataset(cfg, hand, out, objects=cfg.objects, split="train", procedural=simple, complex=count - simple,
+                   seed=cfg.seed)
+
+
+def held_out(cfg: LearnConfig, hand: K.Hand, out: str, sampler: str = "geometric", grasp=None) -> list[DatasetConfig]:
+    """The report's held-out builds: the folder's test split (when there is a folder) and the held-out complex
+    shapes, with candidates from `sampler`."""
+    kw = dict(sampler=sampler, allow_test=True, **({"grasp": grasp} if grasp is not None else {}))
+    out_stem = out.removesuffix(".mcap")
+    builds = []
+    if cfg.objects:
+        builds.append(dataset(cfg, hand, f"{out_stem}_test.mcap", objects=cfg.objects, split="test", **kw))
+    if cfg.held_out:
+        builds.append(dataset(cfg, hand, f"{out_stem}_complex.mcap", split="train", complex=cfg.held_out,
+                              seed=HELD_OUT_SEED, **kw))
+    if not builds:
+        raise FfcgsError("the report needs held-out objects: --held-out N (complex shapes) or --objects with a test "
+                         "split")
+    return builds
+
+
+def fitting_objects(cfg: LearnConfig, seconds_per_object: float, spent_s: float) -> tuple[int, str]:
+    """(training objects, the sentence that says why) for the budget left after `spent_s`."""
+    if cfg.minutes == 0:
+        return cfg.train_objects, f"{cfg.train_objects} training objects (no time budget)"
+    left = cfg.minutes * 60 - spent_s
+    n = min(cfg.train_objects, int(SHARES["labels"] * left / max(seconds_per_object, 1e-3)))
+    if n < FEWEST_OBJECTS:
+        raise FfcgsError(f"a budget of {cfg.minutes:g} min is too small to train anything: labelling takes "
+                         f"{seconds_per_object:.1f} s per object here and {FEWEST_OBJECTS} objects at least are "
+                         f"needed ({math.ceil((FEWEST_OBJECTS * seconds_per_object / SHARES['labels'] + spent_s) / 60)}"
+                         " min or more)")
+    return n, (f"{n} training objects: {seconds_per_object:.1f} s per object of {cfg.per_object} candidates here, "
+               f"{SHARES['labels']:.0%} of the {left / 60:.1f} min left of {cfg.minutes:g}")

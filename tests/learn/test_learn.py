@@ -1,0 +1,133 @@
+"""`ffcgs learn` (`learn.pipeline`): the whole path on the two-finger toy hand, resumption, a changed spec, the
+held-out split, the install rule, and the inputs it refuses in one line."""
+
+import dataclasses
+import errno
+import json
+import shutil
+
+import numpy as np
+import pytest
+
+from ffcgs_jax.core.errors import FfcgsError
+from ffcgs_jax.dataset import mcap_io
+from ffcgs_jax.dataset.objects import sources
+from ffcgs_jax.hand import kinematics as K
+from ffcgs_jax.learn import pipeline, plan
+from ffcgs_jax.learn.config import LearnConfig
+from ffcgs_jax.learning import checkpoint, weights
+from ffcgs_jax.physics.config import PhysicsConfig, RobustConfig
+from ffcgs_jax.synthesis import prediction
+from ffcgs_jax.synthesis.config import GraspConfig, OptimConfig
+from ffcgs_jax.geometry.config import SDFConfig
+
+from paths import REPO
+from test_custom_hand_guide import ACTUATED
+from weights_toy import cvae_file, evaluator_file
+
+TOY = REPO / "tests" / "data" / "toy_hand"
+
+
+def actuated_toy(folder, edit=lambda t: t):
+    """The toy hand as the guide makes it: actuated, fingers closing towards the pads (tests/test_custom_hand_guide)."""
+    folder.mkdir(parents=True, exist_ok=True)
+    xml = edit((TOY / "toy.xml").read_text().replace('axis="1 0 0"', 'axis="-1 0 0"'))
+    (folder / "toy.xml").write_text(xml.rstrip()[: -len("</mujoco>")] + ACTUATED + "\n")
+    shutil.copyfile(TOY / "toy.toml", folder / "toy.toml")
+    return folder / "toy.toml"
+
+
+def small(spec, out, **kw) -> LearnConfig:
+    """The toy run: a few objects, few candidates, one trial, short descents."""
+    return LearnConfig(hand=str(spec), out=str(out), minutes=0.0, train_objects=3, held_out=2, per_object=8,
+                       cvae_epochs=1, predictor_epochs=2, engine="plain",
+                       grasp=GraspConfig(sdf=SDFConfig(res=16), optim=OptimConfig(iters=5)),
+                       physics=PhysicsConfig(robust=RobustConfig(trials=1)),
+                       **kw)
+
+
+@pytest.mark.e2e
+def test_the_toy_hand_end_to_end_resumed_as_uninterrupted(tmp_path, monkeypatch):
+    monkeypatch.setenv("FFCGS_HOME", str(tmp_path / "home"))
+    spec = actuated_toy(tmp_path / "hand")
+    cfg = small(spec, tmp_path / "a")
+    # interrupted after the training labels, then resumed: the stages before are not run again
+    pipeline.learn_hand(cfg, progress=False, stop_after="labels")
+    state = json.loads((tmp_path / "a" / "state.json").read_text())
+    assert list(state["stages"]) == list(pipeline.STAGES[:4])
+    labels_mtime = (tmp_path / "a" / "labels.mcap").stat().st_mtime_ns
+    rep = pipeline.learn_hand(cfg, progress=False)
+    assert (tmp_path / "a" / "labels.mcap").stat().st_mtime_ns == labels_mtime
+    uninterrupted = pipeline.learn_hand(dataclasses.replace(cfg, out=str(tmp_path / "b")), progress=False)
+    assert rep["rows"] == uninterrupted["rows"]
+    # the same network (its metadata names its own folder)
+    trees = [checkpoint.flatten(checkpoint.load(tmp_path / r / "runs" / "predictor" / "weights.npz")[0]) for r in "ab"]
+    assert trees[0].keys() == trees[1].keys()
+    assert all(np.array_equal(trees[0][k], trees[1][k]) for k in trees[0])
+    for f in ("report.md", "report.png", "report.json"):
+        assert (tmp_path / "a" / f).is_file()
+    # the two-finger toy finds no grasp that holds: the report says so and nothing is installed
+    assert rep["install"] == [] and rep["installed"] is None
+    assert "keeps it" in (tmp_path / "a" / "report.md").read_text()
+    assert not weights.installed_dir("toy").exists()
+    # the held-out objects never reached training: no geometry in common, and the report's files are apart
+    trained = {r.mesh_sha256 for r in mcap_io.iter_records(tmp_path / "a" / "labels.mcap")}
+    held = {r.mesh_sha256 for f in state["stages"]["held_geometric"]["files"] for r in mcap_io.iter_records(f)}
+    assert trained and held and not trained & held
+    # a changed spec refuses the folder, and the weights it learned
+    changed = actuated_toy(tmp_path / "changed", lambda t: t.replace('size="0.005"', 'size="0.007"'))
+    with pytest.raises(FfcgsError, match="another version of this hand"):
+        pipeline.learn_hand(dataclasses.replace(cfg, hand=str(changed)), progress=False)
+    with pytest.raises(FfcgsError, match="another version of hand 'toy'"):
+        weights.load_evaluator(tmp_path / "a" / "runs" / "predictor" / "weights.npz", K.load_hand(str(changed)))
+
+
+def test_install_copies_the_winning_parts_where_synthesize_finds_them(tmp_path, monkeypatch):
+    monkeypatch.setenv("FFCGS_HOME", str(tmp_path / "home"))
+    hand = K.load_hand(str(TOY / "toy.toml"))
+    cvae_file(tmp_path / "cvae.npz", hand)
+    evaluator_file(tmp_path / "evaluator.npz", hand)
+    rep = {"install": ["evaluator"], "weights": {"cvae": str(tmp_path / "cvae.npz"),
+                                                 "evaluator": str(tmp_path / "evaluator.npz")}}
+    cfg = LearnConfig(hand=str(TOY / "toy.toml"))
+    out = pipeline.install(cfg, hand, tmp_path, rep)
+    folder = weights.installed_dir("toy")
+    assert out["installed"] == str(folder) and (folder / "evaluator.npz").is_file()
+    assert not (folder / "cvae.npz").exists()  # the predictor alone won: the sampler stays geometric
+    assert prediction.weights_for(hand) is not None
+    out = pipeline.install(cfg, hand, tmp_path, rep | {"install": ["cvae", "evaluator"]})
+    assert (folder / "cvae.npz").is_file()
+    assert pipeline.install(dataclasses.replace(cfg, install=False), hand, tmp_path, rep)["installed"] is None
+
+
+def test_objects_are_scaled_to_the_hand_and_held_out_apart():
+    svh, allegro = K.load_hand("svh"), K.load_hand("allegro")
+    assert plan.scale(svh) == pytest.approx(1.0)
+    assert plan.scale(allegro) > 1.2  # the Allegro's fingers are longer: larger objects
+    cfg = LearnConfig(hand="svh", train_objects=8, held_out=3)
+    train = plan.training(cfg, svh, "t.mcap", 8)
+    assert (train.procedural, train.complex) == (2, 6) and not train.allow_test
+    held = plan.held_out(cfg, svh, "h.mcap")
+    assert [h.complex for h in held] == [3] and held[0].seed != train.seed
+    assert not {s.sha256 for s in sources(train)} & {s.sha256 for h in held for s in sources(h)}
+
+
+def test_bad_input_is_one_line(tmp_path, monkeypatch):
+    with pytest.raises(FfcgsError, match="too small to train anything"):
+        plan.fitting_objects(LearnConfig(minutes=1.0), seconds_per_object=30.0, spent_s=20.0)
+    n, why = plan.fitting_objects(LearnConfig(minutes=60.0, train_objects=500), 10.0, 60.0)
+    assert n == int(0.6 * (3600 - 60) / 10) and "min left" in why
+    with pytest.raises(FfcgsError, match="held-out seed"):
+        pipeline.learn_hand(LearnConfig(seed=4600, out=str(tmp_path / "x")), progress=False)
+    with pytest.raises(FfcgsError, match="hand spec|not found|unknown built-in hand"):
+        pipeline.learn_hand(LearnConfig(hand=str(tmp_path / "nope.toml"), out=str(tmp_path / "x")), progress=False)
+    with pytest.raises(FfcgsError, match="held-out objects"):
+        plan.held_out(LearnConfig(held_out=0), K.load_hand("svh"), "h.mcap")
+
+    def full(*a, **k):
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(pipeline, "check", full)
+    with pytest.raises(FfcgsError, match="disk is full") as e:
+        pipeline.learn_hand(LearnConfig(hand=str(TOY / "toy.toml"), out=str(tmp_path / "y")), progress=False)
+    assert "\n" not in str(e.value)
