@@ -47,8 +47,7 @@ def figures(data: evaluator_data.LabelData, col: dict) -> dict:
     out["within_auc_rate50"], _ = M.within_auc(p[v], data.y[v, -1] >= 0.5, obj[v])
     out["within_auc_E"], _ = M.within_auc(-data.E[v], both[v], obj[v])
     # an object without a valid candidate counts as a failure of every order
-    per = lambda s, lab: sum(M.top_k(s[v & (obj == o)], lab[v & (obj == o)], obj[v & (obj == o)]).any()  # noqa: E731
-                             for o in np.unique(obj) if (v & (obj == o)).any())
+    per = lambda s, lab: int(M.first_valid_holds(s, lab, obj, v).sum())  # noqa: E731
     n = out["objects"]
     out["top1_pred"] = per(p, both) / n
     out["top1_E"] = per(-data.E, both) / n

@@ -50,6 +50,16 @@ def top_k(score: np.ndarray, label: np.ndarray, group: np.ndarray, k: int = 1) -
     return np.asarray(out)
 
 
+def first_valid_holds(score: np.ndarray, label: np.ndarray, group: np.ndarray, valid: np.ndarray) -> np.ndarray:
+    """Per group (in np.unique order): does its best-scored valid member pass? A group without a valid member
+    fails (a user offered nothing holds nothing)."""
+    out = []
+    for g in np.unique(group):
+        rows = (group == g) & valid
+        out.append(bool(rows.any() and top_k(score[rows], label[rows], group[rows]).any()))
+    return np.asarray(out, bool)
+
+
 def random_top1(label: np.ndarray, group: np.ndarray) -> np.ndarray:
     """Per group: the chance a random order puts a passing member first (its pass rate)."""
     return np.asarray([np.mean(np.asarray(label)[group == g]) for g in np.unique(group)])

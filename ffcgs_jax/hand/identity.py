@@ -7,6 +7,10 @@ files lie) and the compiled MJCF's kinematic and collision numbers (bodies, join
 rounded to 6 significant digits (a micrometre of a link, far above float noise and the
 compilers of MuJoCo releases): a moved or re-saved file is the same hand, a longer link, a new limit or a larger
 fingertip is not. Inertias and other numbers the grasp pipeline never reads are left out.
+
+`cli.grasp_many.hand_sha256` hashes the same hand exactly (`mj_saveModel`'s bytes): a many-object run's resume
+key must change with anything the synthesis sees, even a MuJoCo release's compiler; weights must not be refused
+for that.
 """
 
 import dataclasses

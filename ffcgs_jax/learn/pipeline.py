@@ -11,7 +11,8 @@
     report         report.md, report.json, report.png: held-out first grasps, learned against geometric + E
     install        the parts that beat the geometric sampler copied to the user folder (`weights.installed_dir`)
 
-Each stage records its result in OUT/state.json when it ends; the builds keep every finished object in their
+Each stage records its result and its seconds in OUT/state.json when it ends (the budget counts those, so a
+resumed run plans with the time its earlier processes spent); the builds keep every finished object in their
 parts folders and the trainings checkpoint every epoch, so a killed run, started again with the same command,
 ends where an uninterrupted one would. A folder started for another version of the hand, or with other settings,
 is refused in one line.
@@ -87,15 +88,14 @@ def learn_hand(cfg: LearnConfig = LearnConfig(), progress: bool = True, stop_aft
     files.check_folder(work, "--out folder")
     work.mkdir(parents=True, exist_ok=True)
     state = State(work, spec_sha256(hand.spec), settings_of(cfg))
-    t0 = time.perf_counter()
     say = (lambda m: print(f"ffcgs learn: {m}", flush=True)) if progress else (lambda m: None)
     runs = {
         "check": lambda: check(cfg, hand),
         "held_geometric": lambda: held_labels(cfg, hand, work, "geometric", progress),
-        "plan": lambda: planned(cfg, state, t0),
+        "plan": lambda: planned(cfg, state),
         "labels": lambda: labels(cfg, hand, work, state.done("plan")["objects"], progress),
         "cvae": lambda: train_cvae(cfg, hand, work, progress),
-        "predictor": lambda: train_predictor(cfg, work, progress),
+        "predictor": lambda: train_predictor(cfg, hand, work, progress),
         "held_learned": lambda: held_learned(cfg, hand, work, state, progress),
         "report": lambda: report.write(cfg, hand, work, state.data["stages"]),
         "install": lambda: install(cfg, hand, work, state.done("report")),
@@ -103,6 +103,7 @@ def learn_hand(cfg: LearnConfig = LearnConfig(), progress: bool = True, stop_aft
     for i, stage in enumerate(STAGES):
         if state.done(stage) is None:
             say(f"stage {i + 1}/{len(STAGES)}: {stage}")
+            t0 = time.perf_counter()
             try:
                 result = runs[stage]()
             except OSError as e:
@@ -125,8 +126,9 @@ def check(cfg: LearnConfig, hand: K.Hand) -> dict:
 
     mesh = mesh_io.load_mesh("box")
     scene.build(hand.spec, mesh, convex.decompose(mesh, cfg.physics), cfg.physics, table_z=0.0)
-    return {"hand": hand.spec.name, "scale": plan.scale(hand), "say": f"hand {hand.spec.name}: spec, MJCF and "
-            f"physics scene checked; objects scaled by {plan.scale(hand):.2f} x the SVH's"}
+    scale = plan.scale(hand)
+    return {"hand": hand.spec.name, "scale": scale, "say": f"hand {hand.spec.name}: spec, MJCF and physics scene "
+            f"checked; objects scaled by {scale:.2f} x the SVH's"}
 
 
 def _build(dc, progress: bool) -> dict:
@@ -146,8 +148,9 @@ def held_labels(cfg: LearnConfig, hand: K.Hand, work: Path, sampler: str, progre
             "objects": sorted({r["object"] for r in rows})}
 
 
-def planned(cfg: LearnConfig, state: State, t0: float) -> dict:
-    n, why = plan.fitting_objects(cfg, state.done("held_geometric")["seconds_per_object"], time.perf_counter() - t0)
+def planned(cfg: LearnConfig, state: State) -> dict:
+    spent = sum(r["seconds"] for r in state.data["stages"].values())
+    n, why = plan.fitting_objects(cfg, state.done("held_geometric")["seconds_per_object"], spent)
     return {"objects": n, "say": why}
 
 
@@ -178,12 +181,11 @@ def train_cvae(cfg: LearnConfig, hand: K.Hand, work: Path, progress: bool) -> di
             "say": f"CVAE trained on {summary['train_grasps']} robust successes, {cfg.cvae_epochs} epochs"}
 
 
-def train_predictor(cfg: LearnConfig, work: Path, progress: bool) -> dict:
+def train_predictor(cfg: LearnConfig, hand: K.Hand, work: Path, progress: bool) -> dict:
     from ffcgs_jax.training import evaluator_data, evaluator_train
     from ffcgs_jax.training.config import (CVConfig, EvaluatorDataConfig, EvaluatorOptimConfig,
                                            EvaluatorTrainConfig)
 
-    hand = K.load_hand(cfg.hand)
     data = evaluator_data.load(work / "labels.mcap", hand, progress)
     # a small build (a short budget, a test) still trains: at least 4 steps an epoch
     batch = max(1, min(EvaluatorOptimConfig().batch, len(data.x) // 4))

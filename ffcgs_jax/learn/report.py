@@ -26,12 +26,8 @@ ORDERS = (("geometric", "E", ()), ("geometric", "predictor", ("evaluator",)),
 
 def first_holds(data: evaluator_data.LabelData, score: np.ndarray) -> dict[str, bool]:
     """Per object of `data`: does its best-scored valid candidate hold both protocols?"""
-    hit = evaluator_data.positives(data)[:, -1]
-    out = {}
-    for o in np.unique(data.objects):
-        rows = (data.objects == o) & data.valid
-        out[str(o)] = bool(rows.any() and rank_metrics.top_k(score[rows], hit[rows], data.objects[rows]).any())
-    return out
+    held = rank_metrics.first_valid_holds(score, evaluator_data.positives(data)[:, -1], data.objects, data.valid)
+    return dict(zip(map(str, np.unique(data.objects)), held.tolist(), strict=True))
 
 
 def scores(hand, files_: list[str], weights: str | None) -> dict[str, dict[str, bool]]:
@@ -56,13 +52,11 @@ def write(cfg: LearnConfig, hand, work: Path, stages: dict) -> dict:
     n = len(geo["E"])
     rows = []
     for sampler, order, parts in ORDERS:
-        got = (geo if sampler == "geometric" else learned or {}).get(order) or {}
-        if sampler == "cvae" and not got:
+        if sampler == "cvae" and learned is None:  # no CVAE was learned: nothing of it to compare
             continue
-        # the same objects in every order: the label files differ by sampler, the object names by file stem only
-        by_object = {k.split("/", 1)[1]: v for k, v in got.items()}
-        rows.append({"sampler": sampler, "order": order, "parts": list(parts),
-                     "first_holds": sum(by_object.values()), "objects": n})
+        got = (geo if sampler == "geometric" else learned)[order]
+        rows.append({"sampler": sampler, "order": order, "parts": list(parts), "first_holds": sum(got.values()),
+                     "objects": n})
     base = rows[0]["first_holds"]
     best = max(rows, key=lambda r: (r["first_holds"], -len(r["parts"])))
     install = best["parts"] if best["first_holds"] > base else []

@@ -29,13 +29,13 @@ from ffcgs_jax.core.errors import FfcgsError
 from ffcgs_jax.core.version import __version__
 from ffcgs_jax.hand import kinematics as K
 from ffcgs_jax.hand import sites
+from ffcgs_jax.hand.identity import spec_sha256
 from ffcgs_jax.kernels.adam import AdamState, adam_update
 from ffcgs_jax.learning import checkpoint, cvae
 from ffcgs_jax.learning.weights import WEIGHTS_FORMAT
 from ffcgs_jax.training import data as cvae_data
 from ffcgs_jax.training import harness
 from ffcgs_jax.training.config import KLConfig, TrainConfig, TrainOptimConfig, to_toml
-from ffcgs_jax.hand.identity import spec_sha256
 from ffcgs_jax.training.run import dataset_hand, read_metrics as read_rows, run_folder
 
 def hand_points(hand_name: str) -> tuple[np.ndarray, np.ndarray, K.Hand]:

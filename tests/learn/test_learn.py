@@ -112,6 +112,16 @@ def test_objects_are_scaled_to_the_hand_and_held_out_apart():
     assert not {s.sha256 for s in sources(train)} & {s.sha256 for h in held for s in sources(h)}
 
 
+def test_the_budget_counts_the_seconds_of_earlier_processes(tmp_path):
+    """A resumed run plans with what its stages took, not with how long this process has run."""
+    state = pipeline.State(tmp_path, "h", {})
+    state.finish("check", {"seconds": 60.0})
+    state.finish("held_geometric", {"seconds_per_object": 10.0, "seconds": 540.0})
+    got = pipeline.planned(LearnConfig(minutes=60.0, train_objects=10_000), state)
+    assert got["objects"] == plan.fitting_objects(LearnConfig(minutes=60.0, train_objects=10_000), 10.0, 600.0)[0]
+    assert got["objects"] == int(0.6 * (3600 - 600) / 10)
+
+
 def test_bad_input_is_one_line(tmp_path, monkeypatch):
     with pytest.raises(FfcgsError, match="too small to train anything"):
         plan.fitting_objects(LearnConfig(minutes=1.0), seconds_per_object=30.0, spent_s=20.0)
