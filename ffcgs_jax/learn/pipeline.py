@@ -94,8 +94,8 @@ def learn_hand(cfg: LearnConfig = LearnConfig(), progress: bool = True, stop_aft
         "held_geometric": lambda: held_labels(cfg, hand, work, "geometric", progress),
         "plan": lambda: planned(cfg, state),
         "labels": lambda: labels(cfg, hand, work, state.done("plan")["objects"], progress),
-        "cvae": lambda: train_cvae(cfg, hand, work, progress),
-        "predictor": lambda: train_predictor(cfg, hand, work, progress),
+        "cvae": lambda: train_cvae(cfg, hand, work, spent(state), progress),
+        "predictor": lambda: train_predictor(cfg, hand, work, spent(state), progress),
         "held_learned": lambda: held_learned(cfg, hand, work, state, progress),
         "report": lambda: report.write(cfg, hand, work, state.data["stages"]),
         "install": lambda: install(cfg, hand, work, state.done("report")),
@@ -148,10 +148,31 @@ def held_labels(cfg: LearnConfig, hand: K.Hand, work: Path, sampler: str, progre
             "objects": sorted({r["object"] for r in rows})}
 
 
+def spent(state: State) -> float:
+    """Seconds the finished stages took, in this process and the earlier ones of the same folder."""
+    return sum(r["seconds"] for r in state.data["stages"].values())
+
+
 def planned(cfg: LearnConfig, state: State) -> dict:
-    spent = sum(r["seconds"] for r in state.data["stages"].values())
-    n, why = plan.fitting_objects(cfg, state.done("held_geometric")["seconds_per_object"], spent)
+    n, why = plan.fitting_objects(cfg, state.done("held_geometric")["seconds_per_object"], spent(state))
     return {"objects": n, "say": why}
+
+
+def epochs(cfg: LearnConfig, work: Path, stage: str, most: int, steps_per_epoch: int, cost_key: str,
+           spent_s: float, progress: bool) -> int:
+    """A training stage's epochs (`plan.fitting_epochs`), said once and kept in runs/STAGE.epochs.json before it
+    trains: a stage killed and started again goes on with the epochs its checkpoint was made for."""
+    from ffcgs_jax.training import step_cost
+
+    path = work / "runs" / f"{stage}.epochs.json"
+    if path.is_file():
+        return int(json.loads(path.read_text())["epochs"])
+    n, why = plan.fitting_epochs(cfg, stage, most, steps_per_epoch, spent_s, *step_cost.seconds_per_step(cost_key))
+    if progress:
+        print(f"ffcgs learn: {why}", flush=True)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    files.write_text(path, json.dumps({"epochs": n, "why": why}))
+    return n
 
 
 def labels(cfg: LearnConfig, hand: K.Hand, work: Path, count: int, progress: bool) -> dict:
@@ -163,7 +184,7 @@ def labels(cfg: LearnConfig, hand: K.Hand, work: Path, count: int, progress: boo
     return _build(dc, progress)
 
 
-def train_cvae(cfg: LearnConfig, hand: K.Hand, work: Path, progress: bool) -> dict:
+def train_cvae(cfg: LearnConfig, hand: K.Hand, work: Path, spent_s: float, progress: bool) -> dict:
     from ffcgs_jax.training import data as cvae_data
     from ffcgs_jax.training import train
     from ffcgs_jax.training.config import CVConfig, DataConfig, TrainConfig, TrainOptimConfig
@@ -174,14 +195,17 @@ def train_cvae(cfg: LearnConfig, hand: K.Hand, work: Path, progress: bool) -> di
     except FfcgsError as e:  # no record holds a robust success: nothing to learn a sampler from
         return {"weights": None, "say": f"no CVAE: {e}"}
     tc = TrainConfig(out=str(work / "runs" / "cvae"), hand=cfg.hand, data=DataConfig(path=str(path)),
-                     model=dataclasses.replace(ModelConfig(), res=cfg.grasp.sdf.res), cv=CVConfig(fold=-1),
-                     optim=TrainOptimConfig(epochs=cfg.cvae_epochs))
+                     model=dataclasses.replace(ModelConfig(), res=cfg.grasp.sdf.res), cv=CVConfig(fold=-1))
+    train_recs, _ = cvae_data.split(data, tc.cv.folds, tc.cv.fold, tc.seed)
+    spe = cvae_data.steps_per_epoch(data, train_recs, tc.optim.batch, tc.data.grasps_per_sdf)
+    n = epochs(cfg, work, "cvae", cfg.cvae_epochs, spe, train.cost_key(tc), spent_s, progress)
+    tc = dataclasses.replace(tc, optim=TrainOptimConfig(epochs=n))
     summary = train.train(tc, progress=progress, data=data)
-    return {"weights": str(Path(tc.out) / "weights.npz"), "train_grasps": summary["train_grasps"],
-            "say": f"CVAE trained on {summary['train_grasps']} robust successes, {cfg.cvae_epochs} epochs"}
+    return {"weights": str(Path(tc.out) / "weights.npz"), "train_grasps": summary["train_grasps"], "epochs": n,
+            "say": f"CVAE trained on {summary['train_grasps']} robust successes, {n} epochs"}
 
 
-def train_predictor(cfg: LearnConfig, hand: K.Hand, work: Path, progress: bool) -> dict:
+def train_predictor(cfg: LearnConfig, hand: K.Hand, work: Path, spent_s: float, progress: bool) -> dict:
     from ffcgs_jax.training import evaluator_data, evaluator_train
     from ffcgs_jax.training.config import (CVConfig, EvaluatorDataConfig, EvaluatorOptimConfig,
                                            EvaluatorTrainConfig)
@@ -191,10 +215,13 @@ def train_predictor(cfg: LearnConfig, hand: K.Hand, work: Path, progress: bool) 
     batch = max(1, min(EvaluatorOptimConfig().batch, len(data.x) // 4))
     ec = EvaluatorTrainConfig(out=str(work / "runs" / "predictor"), hand=cfg.hand,
                               data=EvaluatorDataConfig(str(work / "labels.mcap")), cv=CVConfig(fold=-1),
-                              optim=EvaluatorOptimConfig(epochs=cfg.predictor_epochs, batch=batch))
+                              optim=EvaluatorOptimConfig(batch=batch))
+    n = epochs(cfg, work, "predictor", cfg.predictor_epochs, len(data.x) // batch, evaluator_train.cost_key(ec),
+               spent_s, progress)
+    ec = dataclasses.replace(ec, optim=dataclasses.replace(ec.optim, epochs=n))
     summary = evaluator_train.train(ec, progress=progress, data=data)
-    return {"weights": str(Path(ec.out) / "weights.npz"), "train_grasps": summary["train_grasps"],
-            "say": f"success predictor trained on {summary['train_grasps']} labels, {cfg.predictor_epochs} epochs"}
+    return {"weights": str(Path(ec.out) / "weights.npz"), "train_grasps": summary["train_grasps"], "epochs": n,
+            "say": f"success predictor trained on {summary['train_grasps']} labels, {n} epochs"}
 
 
 def held_learned(cfg: LearnConfig, hand: K.Hand, work: Path, state: State, progress: bool) -> dict:

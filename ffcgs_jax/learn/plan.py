@@ -19,8 +19,9 @@ from ffcgs_jax.dataset.config import DatasetConfig
 from ffcgs_jax.hand import kinematics as K
 from ffcgs_jax.learn.config import HELD_OUT_SEED, LearnConfig
 
-SHARES = {"labels": 0.6, "cvae": 0.15, "predictor": 0.05}
-"""Budget shares after the held-out labels; the rest (0.2) is the learned candidates' held-out labels and report."""
+SHARES = {"labels": 0.6, "cvae": 0.15, "predictor": 0.05, "held_learned": 0.2}
+"""Budget shares after the held-out labels (held_learned: the learned candidates' held-out labels and the report).
+Each stage gets its share of what is left when it starts, so one that overran is paid for by the ones after it."""
 SIMPLE_SHARE = 0.25  # of the generated training shapes: boxes, cylinders, ...; the rest complex
 FEWEST_OBJECTS = 4  # below this a budget trains nothing worth reporting
 
@@ -68,12 +69,18 @@ def held_out(cfg: LearnConfig, hand: K.Hand, out: str, sampler: str = "geometric
     return builds
 
 
+def stage_seconds(cfg: LearnConfig, stage: str, spent_s: float) -> float:
+    """The seconds `stage` may take: its share of the budget left after `spent_s` among it and the stages after."""
+    later = list(SHARES)[list(SHARES).index(stage):]
+    return max(0.0, cfg.minutes * 60 - spent_s) * SHARES[stage] / sum(SHARES[k] for k in later)
+
+
 def fitting_objects(cfg: LearnConfig, seconds_per_object: float, spent_s: float) -> tuple[int, str]:
     """(training objects, the sentence that says why) for the budget left after `spent_s`."""
     if cfg.minutes == 0:
         return cfg.train_objects, f"{cfg.train_objects} training objects (no time budget)"
     left = cfg.minutes * 60 - spent_s
-    n = min(cfg.train_objects, int(SHARES["labels"] * left / max(seconds_per_object, 1e-3)))
+    n = min(cfg.train_objects, int(stage_seconds(cfg, "labels", spent_s) / max(seconds_per_object, 1e-3)))
     if n < FEWEST_OBJECTS:
         raise FfcgsError(f"a budget of {cfg.minutes:g} min is too small to train anything: labelling takes "
                          f"{seconds_per_object:.1f} s per object here and {FEWEST_OBJECTS} objects at least are "
@@ -81,3 +88,18 @@ def fitting_objects(cfg: LearnConfig, seconds_per_object: float, spent_s: float)
                          " min or more)")
     return n, (f"{n} training objects: {seconds_per_object:.1f} s per object of {cfg.per_object} candidates here, "
                f"{SHARES['labels']:.0%} of the {left / 60:.1f} min left of {cfg.minutes:g}")
+
+
+def fitting_epochs(cfg: LearnConfig, stage: str, most: int, steps_per_epoch: int, spent_s: float,
+                   seconds_per_step: float, measured: bool) -> tuple[int, str]:
+    """(epochs, the sentence that says why) of a training stage ("cvae", "predictor"): `most` without a budget,
+    else as many as its share of the time left holds at `seconds_per_step` (`training.step_cost`), 1 to `most`."""
+    what = {"cvae": "CVAE", "predictor": "success predictor"}[stage]
+    if cfg.minutes == 0:
+        return most, f"{what}: {most} epochs of {steps_per_epoch} steps (no time budget)"
+    allowed = stage_seconds(cfg, stage, spent_s)
+    epoch_s = steps_per_epoch * seconds_per_step
+    n = int(np.clip(allowed // max(epoch_s, 1e-9), 1, most))
+    source = "measured on this machine" if measured else "a first guess: no training measured on this machine yet"
+    return n, (f"{what}: {n} epochs of {steps_per_epoch} steps fit in {allowed / 60:.1f} min "
+               f"({seconds_per_step * 1e3:.1f} ms per step, {source}; at most {most})")

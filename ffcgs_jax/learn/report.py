@@ -63,7 +63,7 @@ def write(cfg: LearnConfig, hand, work: Path, stages: dict) -> dict:
     weights = {"cvae": stages["cvae"]["weights"], "evaluator": predictor}
     rep = {"hand": hand.spec.name, "held_out_objects": n, "rows": rows, "install": install, "weights": weights,
            "train_objects": stages["plan"]["objects"], "per_object": cfg.per_object,
-           "cvae_epochs": cfg.cvae_epochs, "predictor_epochs": cfg.predictor_epochs}
+           "cvae_epochs": stages["cvae"].get("epochs"), "predictor_epochs": stages["predictor"]["epochs"]}
     files.write_text(work / "report.json", json.dumps(rep, indent=1))
     files.write_text(work / "report.md", markdown(rep))
     picture(rep, work / "report.png")
@@ -76,7 +76,8 @@ def write(cfg: LearnConfig, hand, work: Path, stages: dict) -> dict:
 def markdown(rep: dict) -> str:
     lines = [f"# Learned parts of hand {rep['hand']}", "",
              f"Training: {rep['train_objects']} objects, {rep['per_object']} labelled candidates each (robust "
-             f"verdicts); CVAE {rep['cvae_epochs']} epochs, predictor {rep['predictor_epochs']} epochs.", "",
+             f"verdicts); CVAE {rep['cvae_epochs'] or 'not trained, no'} epochs, predictor "
+             f"{rep['predictor_epochs']} epochs.", "",
              f"Held out: {rep['held_out_objects']} objects never trained on. First grasp holds: the first valid "
              "candidate in the order holds lift-shake and six-dir in the same robust trials.", "",
              "| sampler | order | first grasp holds |", "|---|---|---|"]

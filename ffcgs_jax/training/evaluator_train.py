@@ -149,6 +149,11 @@ def train(cfg: EvaluatorTrainConfig, progress: bool = True, until_epoch: int | N
     return summary
 
 
+def cost_key(cfg: EvaluatorTrainConfig) -> str:
+    """What one predictor step's cost depends on (`step_cost`): its batch and the network's size."""
+    return f"evaluator batch {cfg.optim.batch} hidden {cfg.net.hidden} depth {cfg.net.depth}"
+
+
 def evaluator_task(cfg: EvaluatorTrainConfig, data: evaluator_data.LabelData, train_rows: np.ndarray,
                    val_rows: np.ndarray) -> harness.Task:
     """The predictor's training as a harness task: one compiled call per epoch, the standardiser of the training
@@ -191,7 +196,8 @@ def evaluator_task(cfg: EvaluatorTrainConfig, data: evaluator_data.LabelData, tr
         name="evaluator", step_name="the predictor's training step", seed=cfg.seed, epochs=o.epochs,
         steps_per_epoch=steps, init=init, chunks=chunks, step=step, evaluate=validate, epoch_means=("loss",),
         nonfinite_hint="lower optim.lr", postfix=postfix,
-        legacy=lambda tree: (tree["net"], {"norm": tree["norm"]}) if {"net", "norm"} <= set(tree) else None)
+        legacy=lambda tree: (tree["net"], {"norm": tree["norm"]}) if {"net", "norm"} <= set(tree) else None,
+        cost_key=cost_key(cfg))
 
 
 def plot_metrics(log_path: Path, png: Path, weights, data, rows) -> Path | None:

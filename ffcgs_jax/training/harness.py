@@ -35,6 +35,7 @@ from ffcgs_jax.core.errors import FfcgsError
 from ffcgs_jax.kernels.adam import AdamState, adam_init
 from ffcgs_jax.learning import checkpoint
 from ffcgs_jax.runtime.progress import compiling
+from ffcgs_jax.training import step_cost
 from ffcgs_jax.training.run import RunFolder, read_metrics, truncate_log
 
 CHECKPOINT_FORMAT = "ffcgs-train-checkpoint-2"
@@ -74,6 +75,8 @@ class Task:
         postfix: (last call's metrics, epoch row or None) -> the progress bar's postfix.
         legacy: (tree of a checkpoint written before `CHECKPOINT_FORMAT`) -> (params, consts), or None where that
             tree is not this model's.
+        cost_key: what a step's cost depends on ("sampler batch 32 res 32 ..."): `fit` records the seconds per
+            step it measured under it (`step_cost`); "" records nothing.
     """
 
     name: str
@@ -90,6 +93,7 @@ class Task:
     nonfinite_hint: str = "lower optim.lr"
     postfix: Callable[[dict, dict | None], dict] = lambda metrics, row: {}
     legacy: Callable[[dict], tuple[dict, dict] | None] = lambda tree: None
+    cost_key: str = ""
 
 
 @dataclasses.dataclass
@@ -173,6 +177,7 @@ def fit(task: Task, run: RunFolder, *, until_epoch: int | None = None, progress:
     bar = tqdm(total=spe * task.epochs, initial=start * spe, desc=f"train {run.out.name}", unit="step",
                disable=not progress, dynamic_ncols=True, delay=1e-3)
     first = True
+    rows: list[dict] = []
     with open(run.log, "a") as log:
         for epoch in range(start, stop):
             acc: dict[str, list] = {}
@@ -199,10 +204,14 @@ def fit(task: Task, run: RunFolder, *, until_epoch: int | None = None, progress:
             log.write(json.dumps(row) + "\n")
             log.flush()
             history.append(row)
+            rows.append(row)
             save_state(run.checkpoint, task, params, opt, consts, epoch + 1, run.text, history)
             bar.set_postfix(**task.postfix(m, row))
             last_row = row
     bar.close()
+    per_step = step_cost.measured(rows, spe)
+    if task.cost_key and per_step is not None:
+        step_cost.remember(task.cost_key, per_step)
     if stop < task.epochs:
         return None
     return Fitted(params, consts, last_row)

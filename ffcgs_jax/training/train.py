@@ -194,6 +194,13 @@ def train(cfg: TrainConfig, hand: str | None = None, progress: bool = True, unti
     return summary
 
 
+def cost_key(cfg: TrainConfig) -> str:
+    """What one CVAE step's cost depends on (`step_cost`): its batch, grasps per SDF and the network's size."""
+    m, o = cfg.model, cfg.optim
+    return (f"sampler batch {o.batch}x{cfg.data.grasps_per_sdf} res {m.res} width {m.width} features {m.features} "
+            f"mlp {m.mlp} calls {cfg.steps_per_call}")
+
+
 def cvae_task(cfg: TrainConfig, data: cvae_data.TrainData, train_recs, val_recs, grids, palm_root,
               tet_root) -> harness.Task:
     """The CVAE's training as a harness task: `steps_per_call` steps per compiled call, validation per epoch."""
@@ -232,7 +239,7 @@ def cvae_task(cfg: TrainConfig, data: cvae_data.TrainData, train_recs, val_recs,
         chunks=chunks, step=step, evaluate=validate, log_every=cfg.log_every,
         nonfinite_hint="lower optim.lr or set optim.grad_clip",
         postfix=lambda m, row: {"rec_cm": f"{100 * float(m['rec'][-1]):.2f}", "kl": f"{float(m['kl'][-1]):.2f}"},
-        legacy=lambda tree: (tree["params"], {}) if "params" in tree else None)
+        legacy=lambda tree: (tree["params"], {}) if "params" in tree else None, cost_key=cost_key(cfg))
 
 
 def read_metrics(path: str | Path) -> tuple[list[dict], list[dict]]:

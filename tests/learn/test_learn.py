@@ -19,6 +19,7 @@ from ffcgs_jax.learning import checkpoint, weights
 from ffcgs_jax.physics.config import PhysicsConfig, RobustConfig
 from ffcgs_jax.synthesis import prediction
 from ffcgs_jax.synthesis.config import GraspConfig, OptimConfig
+from ffcgs_jax.training import step_cost
 from ffcgs_jax.geometry.config import SDFConfig
 
 from paths import REPO
@@ -141,3 +142,21 @@ def test_bad_input_is_one_line(tmp_path, monkeypatch):
     with pytest.raises(FfcgsError, match="disk is full") as e:
         pipeline.learn_hand(LearnConfig(hand=str(TOY / "toy.toml"), out=str(tmp_path / "y")), progress=False)
     assert "\n" not in str(e.value)
+
+
+def test_a_budget_chooses_the_epochs_that_fit_and_says_so(tmp_path, monkeypatch):
+    cfg = LearnConfig(minutes=60.0)
+    # 3600 - 1800 s left; the CVAE's share of the stages still to run: 0.15 / 0.4
+    assert plan.stage_seconds(cfg, "cvae", 1800.0) == pytest.approx(1800 * 0.15 / 0.4)
+    n, why = plan.fitting_epochs(cfg, "cvae", 40, 100, 1800.0, 0.5, True)
+    assert n == int(1800 * 0.15 / 0.4 // 50) == 13 and "13 epochs of 100 steps" in why and "measured" in why
+    slower, _ = plan.fitting_epochs(cfg, "cvae", 40, 100, 1800.0, 1.0, False)
+    assert slower == 6
+    assert plan.fitting_epochs(cfg, "cvae", 40, 100, 1800.0, 1e-4, True)[0] == 40  # at most --cvae-epochs
+    assert plan.fitting_epochs(cfg, "predictor", 30, 100, 3590.0, 1.0, True)[0] == 1  # at least one
+    assert plan.fitting_epochs(LearnConfig(minutes=0.0), "cvae", 7, 100, 1e9, 10.0, False)[0] == 7
+    # the choice is kept: a stage started again trains for the epochs its checkpoint was made for
+    monkeypatch.setenv("FFCGS_JAX_CACHE", str(tmp_path / "cache"))
+    first = pipeline.epochs(cfg, tmp_path, "cvae", 40, 20_000, "sampler x", 1800.0, progress=False)
+    assert first == int(1800 * 0.15 / 0.4 // (20_000 * step_cost.PRIOR["sampler"])) == 4
+    assert pipeline.epochs(cfg, tmp_path, "cvae", 40, 20_000, "sampler x", 3000.0, progress=False) == first

@@ -2,6 +2,7 @@
 and the predictor both run through it (one checkpoint schema); checkpoints of the loops before it still resume to
 the same weights; checkpoints it cannot continue are refused in one line that says what to do, before any write."""
 
+import dataclasses
 import json
 from functools import partial
 
@@ -180,3 +181,26 @@ def test_both_tasks_share_one_checkpoint_schema_and_old_sampler_checkpoints_resu
     strip = lambda r: [{k: v for k, v in json.loads(x).items() if k != "elapsed_s"}  # noqa: E731
                        for x in (tmp_path / r / "metrics.jsonl").read_text().splitlines()]
     assert strip("a") == strip("b")
+
+
+def test_fit_records_the_steady_seconds_per_step_it_measured(tmp_path, monkeypatch):
+    """The cost `ffcgs learn` sizes its epochs by: the epochs after the first (which paid the compile), per step,
+    kept under the task's key beside the compilation cache; a task without a key records nothing."""
+    from ffcgs_jax.training import step_cost
+
+    monkeypatch.setenv("FFCGS_JAX_CACHE", str(tmp_path / "cache"))
+    cfg = lambda name: EvaluatorTrainConfig(out=str(tmp_path / name))  # noqa: E731
+    assert step_cost.seconds_per_step("toy batch 8") == (max(step_cost.PRIOR.values()), False)
+    harness.fit(toy_task(), run_folder(cfg("a")), progress=False)
+    assert not step_cost.record_path().exists()
+    keyed = lambda: dataclasses.replace(toy_task(), cost_key="toy batch 8")  # noqa: E731
+    harness.fit(keyed(), run_folder(cfg("b")), progress=False)
+    rows = [json.loads(x) for x in (tmp_path / "b" / "metrics.jsonl").read_text().splitlines()]
+    elapsed = [r["elapsed_s"] for r in rows if "elapsed_s" in r]
+    want = (elapsed[-1] - elapsed[0]) / (3 * 5)
+    got, measured = step_cost.seconds_per_step("toy batch 8")
+    assert measured and got == pytest.approx(want)
+    harness.fit(dataclasses.replace(keyed(), epochs=1), run_folder(cfg("c")), progress=False)
+    assert step_cost.seconds_per_step("toy batch 8")[0] == got  # one epoch measures nothing steady
+    assert step_cost.measured([{"elapsed_s": 1.0}, {"elapsed_s": 3.0}, {"elapsed_s": 5.0}], 4) == 0.5
+    assert step_cost.seconds_per_step("sampler batch 32")[0] == step_cost.PRIOR["sampler"]
