@@ -31,9 +31,9 @@ class LearnConfig:
         held_out: complex shapes of the held-out seed in the report's set (besides the folder's test split).
         per_object: candidates labelled per object (robust verdict, three protocols).
         seed: the training shapes' seed (a held-out seed is refused).
-        cvae_epochs, predictor_epochs: training passes without a budget; with one, the most each training may
-            take: it takes as many as its share of the time left holds (`plan.fitting_epochs`, said in one line;
-            the report states them).
+        cvae_epochs: the CVAE's training passes without a budget; with one, the most it may take: as many as its
+            share of the time left holds (`plan.fitting_epochs`, said in one line; the report states them).
+        predictor_epochs: the success predictor's passes, chosen the same way.
         install: put the learned parts in the user folder when they beat the geometric sampler on the held-out
             objects (`learning.weights.installed_dir`).
         engine, address: the data engine, as `ffcgs dataset build` (a local Ray instance or plain; a cluster).
