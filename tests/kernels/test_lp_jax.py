@@ -209,10 +209,14 @@ def test_pallas_kernel_takes_the_xla_pivots(instances, monkeypatch):
     f = jax.jit(jax.vmap(lambda W, b: lp_jax.solve(W, jnp.asarray(U), AXES, basis0=b)))
     cold = f(sub, jnp.full((len(sub), 7), -1, jnp.int32))
     assert np.asarray(cold.ok).all()
-    np.testing.assert_array_equal(cold.pivots, xla.pivots)
-    np.testing.assert_array_equal(cold.basis, xla.basis)
+    # The coincident LPs (the last 6) are degenerate: several bases describe one optimal vertex, and a ratio-test
+    # tie within an ulp picks one; an ulp moves with the CPU's vector width (CI's machine took column 66 where this
+    # one takes 67, 2026-11-29). Their value must agree, their path need not.
+    plain = slice(0, 14)
+    np.testing.assert_array_equal(cold.pivots[plain], xla.pivots[plain])
+    np.testing.assert_array_equal(cold.basis[plain], xla.basis[plain])
+    np.testing.assert_allclose(cold.alpha[plain], xla.alpha[plain], atol=1e-12)
     np.testing.assert_allclose(cold.value, xla.value, atol=1e-12)
-    np.testing.assert_allclose(cold.alpha, xla.alpha, atol=1e-12)
     np.testing.assert_allclose(cold.value, [metrics.q_distance_reference(W.T, U) for W in np.asarray(sub)], atol=1e-9)
     moved = sub + 1e-3 * np.random.default_rng(5).normal(size=sub.shape)
     warm = f(moved, cold.basis)
@@ -220,7 +224,7 @@ def test_pallas_kernel_takes_the_xla_pivots(instances, monkeypatch):
     np.testing.assert_allclose(warm.value, [metrics.q_distance_reference(W.T, U) for W in np.asarray(moved)],
                                atol=1e-9)
     bad = f(sub, jnp.full((len(sub), 7), 10_000, jnp.int32))  # out of range: the cold start
-    np.testing.assert_array_equal(bad.pivots, xla.pivots)
+    np.testing.assert_array_equal(bad.pivots, cold.pivots)
 
 
 def test_lp_kernel_choice(monkeypatch):
