@@ -43,14 +43,10 @@ def _update(change) -> None:
     files.update_record(record_path(), change)
 
 
-def _blend(old, new: float) -> float:
-    return float(new) if not isinstance(old, (int, float)) else (1 - KEEP) * float(old) + KEEP * float(new)
-
-
 def remember_cpu(protocol: str, core_s_per_grasp: float) -> None:
     def change(d):
         cpu = d.setdefault("cpu", {})
-        cpu[protocol] = _blend(cpu.get(protocol), core_s_per_grasp)
+        cpu[protocol] = files.blended(cpu.get(protocol), core_s_per_grasp, KEEP)
 
     _update(change)
 
@@ -58,13 +54,13 @@ def remember_cpu(protocol: str, core_s_per_grasp: float) -> None:
 def remember_warp(worlds: int, step_s: float) -> None:
     def change(d):
         steps = d.setdefault("step_s", {})
-        steps[str(worlds)] = _blend(steps.get(str(worlds)), step_s)
+        steps[str(worlds)] = files.blended(steps.get(str(worlds)), step_s, KEEP)
 
     _update(change)
 
 
 def remember_setup(seconds: float) -> None:
-    _update(lambda d: d.__setitem__("setup_s", _blend(d.get("setup_s"), seconds)))
+    _update(lambda d: d.__setitem__("setup_s", files.blended(d.get("setup_s"), seconds, KEEP)))
 
 
 def _figures() -> dict:

@@ -35,8 +35,7 @@ def seconds_per_step(cost_key: str) -> tuple[float, bool]:
 
 def remember(cost_key: str, seconds: float) -> None:
     def change(d):
-        old = d.get(cost_key)
-        d[cost_key] = float(seconds) if not isinstance(old, (int, float)) else (1 - KEEP) * old + KEEP * seconds
+        d[cost_key] = files.blended(d.get(cost_key), seconds, KEEP)
 
     files.update_record(record_path(), change)
 

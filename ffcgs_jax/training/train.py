@@ -58,17 +58,24 @@ def batch_loss(params, grids, origin, voxel, pose, key, beta_t, palm_root, tet_r
     return rec + beta_t * kl, {"rec": rec, "kl": kl}
 
 
+def static_optim(optim: TrainOptimConfig) -> TrainOptimConfig:
+    """`optim` without what `train_steps` takes traced (lr) or never reads (epochs): its compile key."""
+    return dataclasses.replace(optim, lr=TrainOptimConfig.lr, epochs=TrainOptimConfig.epochs)
+
+
 def _global_norm(tree):
     return jnp.sqrt(sum(jnp.sum(x * x) for x in jax.tree.leaves(tree)))
 
 
 @partial(jax.jit, static_argnames=("optim", "kl"), donate_argnames=("params", "opt"))
 def train_steps(params, opt: AdamState, step0, live, grids, origin, voxel, pose, rec_idx, grasp_idx, palm_root,
-                tet_root, seed, total_steps, optim: TrainOptimConfig, kl: KLConfig):
+                tet_root, seed, total_steps, lr, optim: TrainOptimConfig, kl: KLConfig):
     """len(rec_idx) Adam steps fused in one lax.scan; steps with live[i] False leave params unchanged (they pad
     an epoch's last chunk to the fixed length, so one compilation serves every chunk, fold and epoch count).
-    Returns (params, opt, per-step metrics)."""
+    `lr` is traced, and `optim` (static) is `static_optim`'s: a sweep over the step size or the epochs reuses the
+    compile. Returns (params, opt, per-step metrics)."""
     base_key = jax.random.key(seed + 1)
+    lr = lr.astype(jax.tree.leaves(params)[0].dtype)  # as a Python float's would be: the same steps as before
 
     def one(carry, xs):
         i, r, gi, ok = xs
@@ -84,7 +91,7 @@ def train_steps(params, opt: AdamState, step0, live, grids, origin, voxel, pose,
             if optim.grad_clip > 0:
                 scale = jnp.minimum(1.0, optim.grad_clip / (norm + 1e-12))
                 grads = jax.tree.map(lambda x: x * scale, grads)
-            updates, opt = adam_update(grads, opt, optim.lr, optim.b1, optim.b2, optim.eps)
+            updates, opt = adam_update(grads, opt, lr, optim.b1, optim.b2, optim.eps)
             params = jax.tree.map(lambda p, u: (p + u).astype(p.dtype), params, updates)  # x64 must not promote
             return (params, opt), {"loss": loss, "rec": aux["rec"], "kl": aux["kl"], "grad_norm": norm}
 
@@ -124,9 +131,12 @@ def evaluate(params, data: cvae_data.TrainData, records: np.ndarray, palm_root, 
     recs, kls = [], []
     grids, origin, voxel = dev if dev is not None else (jnp.asarray(a) for a in
                                                         (data.grids, data.origin, data.voxel_size))
+    # Fixed shapes (one compilation each): `chunk`, or for fewer grasps the power of two that holds them, so that a
+    # small validation set does not pay for `chunk` U-Net calls (20 grasps were padded to 512: ~35 s on 2 cores).
+    chunk = min(chunk, max(64, 1 << max(len(sel) - 1, 0).bit_length()))
     for s in range(0, len(sel), chunk):
         idx = sel[s:s + chunk]
-        pad = np.resize(idx, chunk)  # fixed shape: one compilation; padded entries are dropped below
+        pad = np.resize(idx, chunk)  # padded entries are dropped below
         r, k = _eval_chunk(params, grids, origin, voxel, jnp.asarray(data.pose[pad]), jnp.asarray(data.record[pad]),
                            palm_root, tet_root)
         recs.append(np.asarray(r)[: len(idx)])
@@ -212,6 +222,7 @@ def cvae_task(cfg: TrainConfig, data: cvae_data.TrainData, train_recs, val_recs,
     # shapes then do not depend on the dataset's size, so the folds of a cross-validation, a sweep's points and a
     # resumed run share one compile instead of one each (minutes on a CPU)
     chunk = cfg.steps_per_call
+    lr = jnp.asarray(o.lr)
 
     def chunks(epoch):
         rec_idx, grasp_idx = cvae_data.epoch_batches(data, train_recs, o.batch, k,
@@ -225,7 +236,8 @@ def cvae_task(cfg: TrainConfig, data: cvae_data.TrainData, train_recs, val_recs,
     def step(params, opt, consts, step0, inputs):
         live, rec_idx, grasp_idx = inputs
         return train_steps(params, opt, jnp.asarray(step0, jnp.int32), live, *grids, pose, rec_idx, grasp_idx,
-                           palm_root, tet_root, jnp.asarray(cfg.seed, jnp.int32), total, optim=o, kl=cfg.kl)
+                           palm_root, tet_root, jnp.asarray(cfg.seed, jnp.int32), total, lr, optim=static_optim(o),
+                           kl=cfg.kl)
 
     def validate(params, consts):
         if not len(val_recs):

@@ -90,6 +90,18 @@ def test_resume_equals_uninterrupted(toy, tmp_path):
     assert strip(la) == strip(lb)  # nothing lost, nothing duplicated
 
 
+def test_a_sweep_over_the_step_size_and_epochs_compiles_once(toy, tmp_path):
+    """lr is traced and the epochs never reach the step: a sweep's points share one executable, yet each trains
+    with its own step size."""
+    cvae_train.train(config(toy, tmp_path / "a"), progress=False)
+    compiled = cvae_train.train_steps._cache_size()
+    cvae_train.train(config(toy, tmp_path / "b", optim=TrainOptimConfig(lr=1e-4, batch=8, epochs=3)), progress=False)
+    assert cvae_train.train_steps._cache_size() == compiled
+    pa, _ = checkpoint.load(tmp_path / "a" / "weights.npz")
+    pb, _ = checkpoint.load(tmp_path / "b" / "weights.npz")
+    assert any(not np.array_equal(a, b) for a, b in zip(jax.tree.leaves(pa), jax.tree.leaves(pb)))
+
+
 def test_run_folder_with_other_config_is_refused(toy, tmp_path):
     cvae_train.train(config(toy, tmp_path / "r", optim=TrainOptimConfig(lr=3e-3, batch=8, epochs=1)), progress=False)
     with pytest.raises(FfcgsError, match="different config"):
