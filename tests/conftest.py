@@ -49,12 +49,13 @@ def svh():
 
 
 # The longest files first (`--dist loadfile`, `--no-loadscope-reorder` in pyproject's addopts): each test worker
-# starts on a long one and the short ones fill in behind, instead of a half-hour file starting last. Measured on
-# CI's 2-core machine (2026-11-29), longest first; a file missing here only runs in collection order.
+# starts on a long one and the short ones fill in behind, instead of a half-hour file starting last (xdist's own
+# order, by test count, started README's blocks near the end). Measured in `.ci/run` on a 2-core CPU (2026-11-29),
+# longest first; a file missing here runs in collection order after these.
 LONGEST_FIRST = (
-    "test_readme_command_reference.py",  # ~29 min
-    "test_readme_commands.py",  # ~22 min
-    "dataset/test_engine.py",  # ~8 min
+    "test_readme_command_reference.py",  # 27 min
+    "test_readme_commands.py",  # 32 min, in four blocks: the other worker takes files meanwhile
+    "dataset/test_engine.py",  # 8 min
     "test_custom_hand_guide.py",
     "dataset/test_label_groups.py",
     "test_readme.py",

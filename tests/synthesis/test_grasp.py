@@ -76,8 +76,11 @@ def test_compiles_on_the_way_are_compile_time_not_call_time(svh, meshes, box_run
     sdf_mod.clear_cache()
     second = synth(svh, meshes["box"], BOX, "box")
     assert float(first["compile_s"]) > 0.3  # the SDF builder alone takes seconds to compile on a CPU
-    assert float(first["sdf_s"]) <= float(second["sdf_s"]) + 0.3
-    assert float(first["total_s"]) <= float(second["total_s"]) + 0.5
+    # A compile counted as call time would add its seconds (the SDF builder's: about 2 s on the 2-core CPU). The
+    # margin stays under that but above what a loaded 2-core machine stalls one call (0.63 s in CI's suite,
+    # 2026-11-29, when the margin was 0.3 s).
+    assert float(first["sdf_s"]) <= float(second["sdf_s"]) + 1.0
+    assert float(first["total_s"]) <= float(second["total_s"]) + 1.2
     for a in (first, second):
         assert float(a["sdf_s"]) + float(a["synthesis_s"]) + float(a["evaluation_s"]) <= float(a["total_s"]) + 1e-3
 
