@@ -132,6 +132,7 @@ def test_silent_fingertips_change_nothing():
     np.testing.assert_array_equal(dev["force_closure"], ref4["force_closure"])
 
 
+@pytest.mark.e2e  # over 20 s on the 2-core CPU: kept out of plain `pytest` (README)
 def test_an_sdf_surface_matches_the_reference_sdf_path():
     mesh = mesh_io.load_mesh("ball")
     grid = sdf.build_sdf(mesh)

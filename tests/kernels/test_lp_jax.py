@@ -198,6 +198,7 @@ def test_unknown_solver_is_refused():
         EnergyConfig(lp_solver="highs").check()
 
 
+@pytest.mark.e2e  # over 20 s on the 2-core CPU: kept out of plain `pytest` (README)
 def test_pallas_kernel_takes_the_xla_pivots(instances, monkeypatch):
     """The one-program-per-LP kernel (`lp_pallas.py`, the GPU default; Pallas's interpreter runs it here) in
     float64: the XLA path's pivots and bases, HiGHS's values, cold, warm (a perturbed LP from the optimal basis of

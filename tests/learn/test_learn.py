@@ -83,6 +83,7 @@ def test_the_toy_hand_end_to_end_resumed_as_uninterrupted(tmp_path, monkeypatch)
         weights.load_evaluator(tmp_path / "a" / "runs" / "predictor" / "weights.npz", K.load_hand(str(changed)))
 
 
+@pytest.mark.e2e  # over 20 s on the 2-core CPU: kept out of plain `pytest` (README)
 def test_install_copies_the_winning_parts_where_synthesize_finds_them(tmp_path, monkeypatch):
     monkeypatch.setenv("FFCGS_HOME", str(tmp_path / "home"))
     hand = K.load_hand(str(TOY / "toy.toml"))
@@ -101,6 +102,7 @@ def test_install_copies_the_winning_parts_where_synthesize_finds_them(tmp_path, 
     assert pipeline.install(dataclasses.replace(cfg, install=False), hand, tmp_path, rep)["installed"] is None
 
 
+@pytest.mark.e2e  # over 20 s on the 2-core CPU: kept out of plain `pytest` (README)
 def test_objects_are_scaled_to_the_hand_and_held_out_apart():
     svh, allegro = K.load_hand("svh"), K.load_hand("allegro")
     assert plan.scale(svh) == pytest.approx(1.0)

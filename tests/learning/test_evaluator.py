@@ -73,6 +73,7 @@ def test_gradient_matches_finite_differences():
         assert abs(float(grads[layer][leaf][idx]) - fd) < 1e-7 * max(1.0, abs(fd)), path
 
 
+@pytest.mark.e2e  # over 20 s on the 2-core CPU: kept out of plain `pytest` (README)
 def test_features_have_the_documented_width_and_layout(svh, box_sdf):
     a = grasps(svh, 5, seed=1)
     inputs = evaluator.grasp_inputs(a, 5)

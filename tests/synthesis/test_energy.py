@@ -183,6 +183,7 @@ def test_contact_energy_gradient_is_eq12_with_the_gradient_channel(toy):
     np.testing.assert_allclose(g, expected, rtol=1e-6)
 
 
+@pytest.mark.e2e  # over 20 s on the 2-core CPU: kept out of plain `pytest` (README)
 def test_fixed_normals_change_the_gradient_only_through_the_normals(toy):
     """normal_grad=False is the gradient of E_g(c(q), n held at the current q) + a_q E_q; True differs from it."""
     hand, target, H = toy

@@ -219,6 +219,7 @@ def test_hand_table_penetration(svh, ball):
     assert float(depth) == 0.0  # the object is 50 cm away
 
 
+@pytest.mark.e2e  # over 20 s on the 2-core CPU: kept out of plain `pytest` (README)
 def test_penetration_penalty_gradient_matches_finite_differences(toy, plane):
     q0 = 0.5 * (toy.lower + toy.upper)
     _, per, *_, pen = depths(toy, plane, jnp.eye(4), q0)

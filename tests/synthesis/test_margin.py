@@ -85,6 +85,7 @@ def test_margin_gradient_matches_central_differences():
         np.testing.assert_allclose(np.asarray(g), fd, rtol=1e-5, atol=1e-9)
 
 
+@pytest.mark.e2e  # over 20 s on the 2-core CPU: kept out of plain `pytest` (README)
 def test_energy_with_margin_adds_a_m_E_m_and_its_gradient_in_q():
     """In energy(): E = ... + a_m E_m; with the direction search off (margin_steps 0) E is a plain function of q,
     and its q-gradient (through the toy hand's kinematics) matches central differences."""

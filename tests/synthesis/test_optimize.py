@@ -195,6 +195,7 @@ def test_channels_stay_within_the_joint_limits(gd_result):
     assert (np.abs(q) > 1e-3).any()  # and q moved
 
 
+@pytest.mark.e2e  # over 20 s on the 2-core CPU: kept out of plain `pytest` (README)
 def test_steps_past_the_limits_are_clipped(toy):
     big = run(*toy, OptimConfig(iters=2, method="gd", step=50.0, step_end=50.0, wrist=False))
     q = np.asarray(big.q)
@@ -229,6 +230,7 @@ def test_fixed_wrist_returns_the_input_poses(toy, gd_result):
     np.testing.assert_array_equal(np.asarray(gd_result.wrist_pose), POSES)
 
 
+@pytest.mark.e2e  # over 20 s on the 2-core CPU: kept out of plain `pytest` (README)
 def test_batch_members_are_independent(toy, gd_result):
     """Each pose alone (B = 1) gives what it gets in the batch of 4."""
     hand, target, poses = toy
@@ -249,6 +251,7 @@ def test_second_call_does_not_recompile(toy, gd_result):
     assert not np.allclose(np.asarray(r.q), np.asarray(gd_result.q))  # it did run on the new poses
 
 
+@pytest.mark.e2e  # over 20 s on the 2-core CPU: kept out of plain `pytest` (README)
 def test_early_stop_at_iteration_zero(toy):
     """With eps_g and eps_c huge every pose has converged before the first step: nothing moves (wrist included)."""
     hand, target, poses = toy

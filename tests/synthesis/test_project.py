@@ -69,6 +69,7 @@ run = jax.jit(project, static_argnums=4)  # allow traced: one compile for every 
 run_batch = jax.jit(project_batch, static_argnums=4)
 
 
+@pytest.mark.e2e  # over 20 s on the 2-core CPU: kept out of plain `pytest` (README)
 def test_a_fingertip_3mm_inside_a_ball_ends_on_its_surface(toy):
     sdf, q = sunk_tip(toy, SUNK)
     pen0, gaps0 = measure(toy, sdf, q)
@@ -100,6 +101,7 @@ def test_a_grasp_that_does_not_penetrate_is_not_moved(toy):
     assert np.array_equal(np.asarray(run(toy, sdf, jnp.eye(4), q, 0, 0.0)), np.asarray(q))  # 0 steps: as given
 
 
+@pytest.mark.e2e  # over 20 s on the 2-core CPU: kept out of plain `pytest` (README)
 def test_batched_equals_a_loop_of_singles(toy):
     sdf, q = sunk_tip(toy, SUNK)
     qs = jnp.stack([q, q + jnp.array([0.05, 0.0]), q - jnp.array([0.3, 0.2]), q + jnp.array([0.02, 0.1])])

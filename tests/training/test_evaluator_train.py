@@ -82,6 +82,7 @@ def test_a_resumed_run_equals_an_uninterrupted_one(tmp_path):
     assert whole["train_auc_all"] == resumed["train_auc_all"]
 
 
+@pytest.mark.e2e  # over 20 s on the 2-core CPU: kept out of plain `pytest` (README)
 def test_ffcgs_train_model_evaluator_on_a_labelled_file(tmp_path, svh, box_sdf, capsys):
     f = write_labelled(tmp_path / "labels.mcap", svh, box_sdf)
     data = evaluator_data.load(f, svh, progress=False)
