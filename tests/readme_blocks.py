@@ -120,9 +120,12 @@ def _run_served(line: str, folder: Path, env: dict) -> str:
     return said
 
 
-def run_block(lines: list[str], folder: Path, env: dict) -> None:
-    """Every line of one block in `folder`, as a user's shell would run them one after the other; each must exit 0
-    without a traceback."""
+def run_block(lines: list[str], tmp_path: Path, tmp_path_factory) -> None:
+    """Every line of one block in a fresh folder under `tmp_path`, as a user's shell would run them one after the
+    other, with the run's shared compilation cache; each must exit 0 without a traceback."""
+    folder = tmp_path / "work"
+    folder.mkdir()
+    env = env_for(folder, shared_cache(tmp_path_factory))
     _user_files(folder)
     os.symlink(REPO / "configs", folder / "configs")  # README's paths into the checkout (`--config configs/...`)
     if any(line.startswith("ray ") for line in lines):

@@ -8,6 +8,4 @@ import readme_blocks as rb
 @pytest.mark.e2e
 def test_readme_command_reference_runs_as_written(tmp_path, tmp_path_factory):
     _, lines = rb.command_blocks()[rb.REFERENCE]
-    folder = tmp_path / "work"
-    folder.mkdir()
-    rb.run_block(lines, folder, rb.env_for(folder, rb.shared_cache(tmp_path_factory)))
+    rb.run_block(lines, tmp_path, tmp_path_factory)

@@ -22,6 +22,4 @@ def test_comments_are_dropped_but_not_quoted_hashes():
 @pytest.mark.parametrize("lines", [pytest.param(lines, id=f"line{start}")
                                    for k, (start, lines) in enumerate(rb.command_blocks()) if k != rb.REFERENCE])
 def test_readme_block_runs_as_written(lines, tmp_path, tmp_path_factory):
-    folder = tmp_path / "work"
-    folder.mkdir()
-    rb.run_block(lines, folder, rb.env_for(folder, rb.shared_cache(tmp_path_factory)))
+    rb.run_block(lines, tmp_path, tmp_path_factory)

@@ -181,7 +181,7 @@ def read_record(path: Path | None) -> dict:
         return {}
 
 
-def blended(old, new: float, keep: float = 0.5) -> float:
+def blended(old, new: float, keep: float) -> float:
     """A record's figure after a new measurement: `new` where there was none (or a damaged entry), else the
     exponential average that weighs `new` by `keep` (machines drift, runs vary)."""
     return float(new) if not isinstance(old, (int, float)) else (1 - keep) * float(old) + keep * float(new)
