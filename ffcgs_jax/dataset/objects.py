@@ -110,6 +110,12 @@ def _mesh_files(directory: Path) -> list[Path]:
     return found
 
 
+def split_files(directory: str | Path, split: str) -> list[Path]:
+    """The mesh files of `directory` in `split` ("train": sorted index % 5 != 4, "test", or "all"), in build order."""
+    found = _mesh_files(Path(directory))
+    return [p for i, p in enumerate(found) if split == "all" or split == ("test" if i % 5 == 4 else "train")]
+
+
 def sources(cfg: DatasetConfig) -> list[Source]:
     """The objects of the build, in build order (module docstring). Refuses held-out objects unless
     `cfg.allow_test`; a mesh that does not load is named in one line before anything is built."""

@@ -25,7 +25,8 @@ class LearnConfig:
         objects: a folder of meshes (metres, z up): its train split joins the training objects, its test split
             (sorted index % 5 == 4) the held-out ones. "" = generated shapes only.
         minutes: time budget of the whole run. The first stage labels the held-out objects and measures the time
-            per object; the training object count then fills 60 % of what is left. 0 = no budget (`train_objects`).
+            per object; the training objects then fill 60 % of what is left: the folder's train split first (whole),
+            generated shapes after it. 0 = no budget (`train_objects`).
         train_objects: generated training shapes (a quarter simple, the rest complex) when `minutes` is 0; with a
             budget, the most it may choose.
         held_out: complex shapes of the held-out seed in the report's set (besides the folder's test split).

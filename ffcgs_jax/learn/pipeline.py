@@ -154,8 +154,9 @@ def spent(state: State) -> float:
 
 
 def planned(cfg: LearnConfig, state: State) -> dict:
-    n, why = plan.fitting_objects(cfg, state.done("held_geometric")["seconds_per_object"], spent(state))
-    return {"objects": n, "say": why}
+    folder = plan.folder_training(cfg)
+    n, why = plan.fitting_objects(cfg, state.done("held_geometric")["seconds_per_object"], spent(state), folder)
+    return {"objects": n, "folder_objects": folder, "say": why}
 
 
 def epochs(cfg: LearnConfig, work: Path, stage: str, most: int, steps_per_epoch: int, cost_key: str,

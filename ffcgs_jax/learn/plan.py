@@ -75,19 +75,35 @@ def stage_seconds(cfg: LearnConfig, stage: str, spent_s: float) -> float:
     return max(0.0, cfg.minutes * 60 - spent_s) * SHARES[stage] / sum(SHARES[k] for k in later)
 
 
-def fitting_objects(cfg: LearnConfig, seconds_per_object: float, spent_s: float) -> tuple[int, str]:
-    """(training objects, the sentence that says why) for the budget left after `spent_s`."""
+def folder_training(cfg: LearnConfig) -> int:
+    """How many of the --objects folder's meshes are training objects (its train split; 0 without a folder)."""
+    from ffcgs_jax.dataset.objects import split_files
+
+    return len(split_files(cfg.objects, "train")) if cfg.objects else 0
+
+
+def fitting_objects(cfg: LearnConfig, seconds_per_object: float, spent_s: float, folder: int = 0) -> tuple[int, str]:
+    """(generated training shapes, the sentence that says why) for the budget left after `spent_s`. The folder's
+    `folder` training objects are labelled first and count against the budget: the generated shapes fill the rest."""
     if cfg.minutes == 0:
-        return cfg.train_objects, f"{cfg.train_objects} training objects (no time budget)"
+        extra = f" and the folder's {folder}" if folder else ""
+        return cfg.train_objects, f"{cfg.train_objects} generated training objects{extra} (no time budget)"
     left = cfg.minutes * 60 - spent_s
-    n = min(cfg.train_objects, int(stage_seconds(cfg, "labels", spent_s) / max(seconds_per_object, 1e-3)))
-    if n < FEWEST_OBJECTS:
+    fit = int(stage_seconds(cfg, "labels", spent_s) / max(seconds_per_object, 1e-3))
+    n = min(cfg.train_objects, max(fit - folder, 0))
+    if n + folder < FEWEST_OBJECTS:
         raise FfcgsError(f"a budget of {cfg.minutes:g} min is too small to train anything: labelling takes "
                          f"{seconds_per_object:.1f} s per object here and {FEWEST_OBJECTS} objects at least are "
                          f"needed ({math.ceil((FEWEST_OBJECTS * seconds_per_object / SHARES['labels'] + spent_s) / 60)}"
                          " min or more)")
-    return n, (f"{n} training objects: {seconds_per_object:.1f} s per object of {cfg.per_object} candidates here, "
-               f"{SHARES['labels']:.0%} of the {left / 60:.1f} min left of {cfg.minutes:g}")
+    why = (f"{n + folder} training objects ({folder} of the folder, {n} generated)" if folder
+           else f"{n} training objects")
+    why += (f": {seconds_per_object:.1f} s per object of {cfg.per_object} candidates here, {SHARES['labels']:.0%} of "
+            f"the {left / 60:.1f} min left of {cfg.minutes:g}")
+    if folder > fit:  # the folder is labelled whole: the budget does not choose among the user's own objects
+        why += (f"; the folder's training split alone is more than the {fit} that fit, so the run takes about "
+                f"{(folder - fit) * seconds_per_object / 60:.0f} min longer")
+    return n, why
 
 
 def fitting_epochs(cfg: LearnConfig, stage: str, most: int, steps_per_epoch: int, spent_s: float,

@@ -125,6 +125,28 @@ def test_the_budget_counts_the_seconds_of_earlier_processes(tmp_path):
     assert got["objects"] == int(0.6 * (3600 - 600) / 10)
 
 
+def test_the_folders_training_objects_count_against_the_budget(tmp_path):
+    """The --objects folder's train split is labelled whole beside the generated shapes, so the plan counts it: on
+    one H200 a 19 min run planned 65 objects and labelled 101, its folder's 36 unseen (2026-11-29)."""
+    import trimesh
+
+    for i in range(10):  # sorted index % 5 == 4 is the test split: 8 train, 2 test
+        trimesh.creation.box((0.05, 0.06, 0.07 + 0.01 * i)).export(tmp_path / f"obj_{i:02d}.stl")
+    cfg = LearnConfig(minutes=60.0, train_objects=10_000, objects=str(tmp_path))
+    assert plan.folder_training(cfg) == 8 and plan.folder_training(LearnConfig()) == 0
+    fit = int(0.6 * (3600 - 600) / 10)
+    n, why = plan.fitting_objects(cfg, 10.0, 600.0, 8)
+    assert n == fit - 8 and f"{fit} training objects (8 of the folder, {fit - 8} generated)" in why
+    (tmp_path / "w").mkdir()
+    state = pipeline.State(tmp_path / "w", "h", {})
+    state.finish("check", {"seconds": 60.0})
+    state.finish("held_geometric", {"seconds_per_object": 10.0, "seconds": 540.0})
+    assert pipeline.planned(cfg, state) | {"say": ""} == {"objects": fit - 8, "folder_objects": 8, "say": ""}
+    # a folder larger than the budget holds is labelled whole, and the line says the run will take longer
+    n, why = plan.fitting_objects(cfg, 300.0, 600.0, 8)
+    assert n == 0 and "longer" in why
+
+
 def test_bad_input_is_one_line(tmp_path, monkeypatch):
     with pytest.raises(FfcgsError, match="too small to train anything"):
         plan.fitting_objects(LearnConfig(minutes=1.0), seconds_per_object=30.0, spent_s=20.0)

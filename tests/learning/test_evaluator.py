@@ -23,6 +23,7 @@ from ffcgs_jax.training import evaluator_train
 from ffcgs_jax.training.config import EvaluatorTrainConfig
 
 from evaluator_toy import grasps
+from paths import DATA
 
 
 @pytest.fixture(scope="module")
@@ -118,15 +119,23 @@ def test_ranking_by_prediction_is_deterministic_and_ties_go_by_index():
     assert ranking.ranked({**old, "rank_by": np.array("predicted")}).tolist() == [2, 4, 3, 0, 1]
 
 
-def test_rank_predicted_without_a_predictor_is_one_line():
-    allegro = K.load_hand("allegro")
-    if shipped_evaluator(allegro.spec.name).is_file():
-        pytest.skip("a predictor ships for the Allegro")
-    assert prediction.resolve("auto", allegro) == ("energy", None)
+def test_rank_predicted_without_a_predictor_is_one_line(tmp_path, monkeypatch):
+    monkeypatch.setenv("FFCGS_HOME", str(tmp_path))  # no installed predictor either
+    toy = K.load_hand(str(DATA / "toy_hand" / "toy.toml"))  # no predictor ships for the toy hand
+    assert not shipped_evaluator(toy.spec.name).is_file()
+    assert prediction.resolve("auto", toy) == ("energy", None)
     with pytest.raises(FfcgsError, match="needs a success predictor"):
-        prediction.resolve("predicted", allegro)
+        prediction.resolve("predicted", toy)
     with pytest.raises(FfcgsError, match="rank must be one of"):
-        prediction.resolve("best", allegro)
+        prediction.resolve("best", toy)
+
+
+def test_the_allegro_ranks_by_its_shipped_predictor():
+    """Built by `ffcgs learn allegro` (bench/RESULTS.md, issue 46), stamped with the Allegro's spec hash."""
+    allegro = K.load_hand("allegro")
+    assert prediction.resolve("auto", allegro)[0] == "predicted"
+    meta = load_evaluator(shipped_evaluator(allegro.spec.name), allegro)[1]
+    assert meta["hand"] == "allegro_right" and len(meta["hand_sha256"]) == 64
 
 
 def good_weights(hand, tmp_path):
