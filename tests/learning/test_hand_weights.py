@@ -41,6 +41,7 @@ def test_identity_follows_the_hand_not_its_files(tmp_path):
     assert spec_sha256(load_spec("svh")) != spec_sha256(load_spec("allegro"))
 
 
+@pytest.mark.e2e  # about 30 s on the 2-core CPU: kept out of plain `pytest` (README)
 def test_weights_of_another_version_of_the_hand_are_refused_in_one_line(tmp_path):
     hand = K.load_hand(str(TOY / "toy.toml"))
     cvae_file(tmp_path / "cvae.npz", hand)
@@ -67,6 +68,7 @@ def test_the_shipped_weights_are_the_svh_of_this_package():
         assert meta["hand_sha256"] == spec_sha256(svh.spec)
 
 
+@pytest.mark.e2e  # 25-38 s on the 2-core CPU: kept out of plain `pytest` (README)
 def test_installed_weights_are_found_first_and_auto_takes_them(tmp_path, monkeypatch):
     monkeypatch.setenv("FFCGS_HOME", str(tmp_path / "home"))
     hand = K.load_hand(str(TOY / "toy.toml"))

@@ -83,6 +83,7 @@ def test_a_fingertip_3mm_inside_a_ball_ends_on_its_surface(toy):
     assert float(q1[0]) < float(q[0])  # the finger opened: the ball sits where closing it moves the tip
 
 
+@pytest.mark.e2e  # about 30 s on the 2-core CPU: kept out of plain `pytest` (README)
 def test_an_allowance_leaves_that_much_overlap(toy):
     sdf, q = sunk_tip(toy, SUNK)
     q1 = run(toy, sdf, jnp.eye(4), q, STEPS, 0.001)
@@ -90,6 +91,7 @@ def test_an_allowance_leaves_that_much_overlap(toy):
     assert float(pen1) == pytest.approx(0.001, abs=TOL)  # lifted to the allowance, not past it
 
 
+@pytest.mark.e2e  # 25-38 s on the 2-core CPU: kept out of plain `pytest` (README)
 def test_a_grasp_that_does_not_penetrate_is_not_moved(toy):
     for depth in (-0.004, -0.0005, -0.0001):  # hovering 4 mm, 0.5 mm off, touching 0.1 mm off
         sdf, q = sunk_tip(toy, depth)

@@ -104,6 +104,7 @@ def test_ffcgs_train_model_evaluator_on_a_labelled_file(tmp_path, svh, box_sdf, 
     np.testing.assert_allclose(pred["pred_six_dir"], rows[:, 1], atol=1e-5)
 
 
+@pytest.mark.e2e  # 25-38 s on the 2-core CPU: kept out of plain `pytest` (README)
 def test_a_sweep_from_the_command_line_writes_its_table(tmp_path, svh, box_sdf, capsys):
     f = write_labelled(tmp_path / "labels.mcap", svh, box_sdf, n_obj=3, per=16)
     out = tmp_path / "sweep"
