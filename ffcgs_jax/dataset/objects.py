@@ -110,10 +110,13 @@ def _mesh_files(directory: Path) -> list[Path]:
     return found
 
 
+def _split_of(index: int) -> str:
+    return "test" if index % 5 == 4 else "train"
+
+
 def split_files(directory: str | Path, split: str) -> list[Path]:
-    """The mesh files of `directory` in `split` ("train": sorted index % 5 != 4, "test", or "all"), in build order."""
-    found = _mesh_files(Path(directory))
-    return [p for i, p in enumerate(found) if split == "all" or split == ("test" if i % 5 == 4 else "train")]
+    """The mesh files of `directory` in `split` ("train", "test" or "all"), in build order."""
+    return [p for i, p in enumerate(_mesh_files(Path(directory))) if split in ("all", _split_of(i))]
 
 
 def sources(cfg: DatasetConfig) -> list[Source]:
@@ -137,7 +140,7 @@ def sources(cfg: DatasetConfig) -> list[Source]:
         stems = {p.stem for p in found}
         cats = _categories(directory)
         for i, p in enumerate(found):
-            split = "test" if i % 5 == 4 else "train"
+            split = _split_of(i)
             if cfg.split not in ("all", split):
                 continue
             if split == "test" and not cfg.allow_test:

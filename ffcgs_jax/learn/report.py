@@ -61,8 +61,9 @@ def write(cfg: LearnConfig, hand, work: Path, stages: dict) -> dict:
     best = max(rows, key=lambda r: (r["first_holds"], -len(r["parts"])))
     install = best["parts"] if best["first_holds"] > base else []
     weights = {"cvae": stages["cvae"]["weights"], "evaluator": predictor}
+    trained = stages["plan"]["objects"] + stages["plan"].get("folder_objects", 0)  # a folder planned before: 0
     rep = {"hand": hand.spec.name, "held_out_objects": n, "rows": rows, "install": install, "weights": weights,
-           "train_objects": stages["plan"]["objects"] + stages["plan"].get("folder_objects", 0), "per_object": cfg.per_object,
+           "train_objects": trained, "per_object": cfg.per_object,
            "cvae_epochs": stages["cvae"].get("epochs"), "predictor_epochs": stages["predictor"]["epochs"]}
     files.write_text(work / "report.json", json.dumps(rep, indent=1))
     files.write_text(work / "report.md", markdown(rep))

@@ -287,8 +287,9 @@ class GraspConfig:
             share independently): 0 = all local devices of JAX's default backend, k = the first k. The results
             do not depend on it; a batch that does not divide evenly is padded.
         rank: the order grasps are offered in (`GraspSet.order`): "auto" (the default) by the learned success
-            predictor's `pred_success` where one exists for the hand (shipped for the SVH and the Allegro, or `evaluator`), else by
-            E; "predicted" requires a predictor; "energy" by E, the analytic order (predictions still stored).
+            predictor's `pred_success` where one exists for the hand (shipped for the SVH and the Allegro, or
+            `evaluator`), else by E; "predicted" requires a predictor; "energy" by E, the analytic order
+            (predictions still stored).
             On held-out objects the predicted order puts a grasp that holds first far more often than E
             (bench/RESULTS.md, "Success predictor").
         evaluator: a success-predictor weights file (`ffcgs train --model evaluator`); "" = the shipped one.
