@@ -11,18 +11,22 @@
     report         report.md, report.json, report.png: held-out first grasps, learned against geometric + E
     install        the parts that beat the geometric sampler copied to the user folder (`weights.installed_dir`)
 
-Each stage records its result and its seconds in OUT/state.json when it ends (the budget counts those, so a
-resumed run plans with the time its earlier processes spent); the builds keep every finished object in their
+Each stage records its result and its seconds in OUT/state.json when it ends, and a stage interrupted (Ctrl-C, a
+`timeout` or a job scheduler's SIGTERM) records the seconds it had run: the budget counts both, so a resumed run
+plans with the time its earlier processes spent, and a stage's seconds are its whole time over them. The builds keep every finished object in their
 parts folders and the trainings checkpoint every epoch, so a killed run, started again with the same command,
 ends where an uninterrupted one would. A folder started for another version of the hand, or with other settings,
 is refused in one line.
 """
 
+import contextlib
 import dataclasses
 import errno
 import json
 import shutil
+import signal
 import statistics
+import threading
 import time
 from pathlib import Path
 
@@ -62,10 +66,21 @@ class State:
     def done(self, stage: str) -> dict | None:
         return self.data["stages"].get(stage)
 
-    def finish(self, stage: str, result: dict) -> dict:
+    def finish(self, stage: str, result: dict, seconds: float) -> dict:
+        """Record `stage` done; its seconds are these and those of its interrupted earlier processes."""
+        earlier = self.data.get("interrupted", {}).pop(stage, 0.0)
+        result = result | {"seconds": round(seconds + earlier, 1)}
         self.data["stages"][stage] = result
-        files.write_text(self.path, json.dumps(self.data, indent=1, default=str))
+        self.save()
         return result
+
+    def interrupted(self, stage: str, seconds: float) -> None:
+        runs = self.data.setdefault("interrupted", {})
+        runs[stage] = round(runs.get(stage, 0.0) + seconds, 1)
+        self.save()
+
+    def save(self) -> None:
+        files.write_text(self.path, json.dumps(self.data, indent=1, default=str))
 
 
 def settings_of(cfg: LearnConfig) -> dict:
@@ -100,23 +115,43 @@ def learn_hand(cfg: LearnConfig = LearnConfig(), progress: bool = True, stop_aft
         "report": lambda: report.write(cfg, hand, work, state.data["stages"]),
         "install": lambda: install(cfg, hand, work, state.done("report")),
     }
-    for i, stage in enumerate(STAGES):
-        if state.done(stage) is None:
-            say(f"stage {i + 1}/{len(STAGES)}: {stage}")
-            t0 = time.perf_counter()
-            try:
-                result = runs[stage]()
-            except OSError as e:
-                if e.errno != errno.ENOSPC:
+    with sigterm_interrupts():
+        for i, stage in enumerate(STAGES):
+            if state.done(stage) is None:
+                say(f"stage {i + 1}/{len(STAGES)}: {stage}")
+                t0 = time.perf_counter()
+                try:
+                    result = runs[stage]()
+                except BaseException as e:
+                    state.interrupted(stage, time.perf_counter() - t0)
+                    if isinstance(e, OSError) and e.errno == errno.ENOSPC:
+                        raise FfcgsError(f"the disk is full (stage {stage}, in {work}); free some space and run "
+                                         "the same command again: it resumes") from None
                     raise
-                raise FfcgsError(f"the disk is full (stage {stage}, in {work}); free some space and run the same "
-                                 "command again: it resumes") from None
-            result = state.finish(stage, result | {"seconds": round(time.perf_counter() - t0, 1)})
-            if result.get("say"):
-                say(result["say"])
-        if stage == stop_after:
-            break
+                result = state.finish(stage, result, time.perf_counter() - t0)
+                if result.get("say"):
+                    say(result["say"])
+            if stage == stop_after:
+                break
     return state.data["stages"].get("report", {}) | {"installed": (state.done("install") or {}).get("installed")}
+
+
+@contextlib.contextmanager
+def sigterm_interrupts():
+    """SIGTERM (`timeout`, a scheduler ending a job) raises KeyboardInterrupt while the stages run, so the stage
+    records its seconds before the process ends; Python's default would end it at once. Main thread only."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def interrupt(signum, frame):
+        raise KeyboardInterrupt(f"signal {signum}")
+
+    old = signal.signal(signal.SIGTERM, interrupt)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, old)
 
 
 def check(cfg: LearnConfig, hand: K.Hand) -> dict:
@@ -149,8 +184,8 @@ def held_labels(cfg: LearnConfig, hand: K.Hand, work: Path, sampler: str, progre
 
 
 def spent(state: State) -> float:
-    """Seconds the finished stages took, in this process and the earlier ones of the same folder."""
-    return sum(r["seconds"] for r in state.data["stages"].values())
+    """Seconds the stages took, finished or interrupted, in this process and the earlier ones of the same folder."""
+    return sum(r["seconds"] for r in state.data["stages"].values()) + sum(state.data.get("interrupted", {}).values())
 
 
 def planned(cfg: LearnConfig, state: State) -> dict:

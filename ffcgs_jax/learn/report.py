@@ -4,9 +4,11 @@ learned parts against the geometric sampler ranked by E, side by side, and which
 Orders compared (each over the valid candidates of each held-out object; an object without one fails):
     geometric + E           what the hand gets with no learned part (the baseline)
     geometric + predictor   the predictor alone installed
+    cvae + E                the CVAE alone installed
     cvae + predictor        both installed
 "Holds" is the robust verdict of lift-shake and six-dir in the same trials (`physics.robust`, 7 of 8 at the
 defaults). The parts installed are those of the best order when it beats the baseline; ties keep fewer parts.
+Beside them, each sampler's bound: the objects where some valid candidate holds, what a perfect ranker would get.
 """
 
 import json
@@ -20,7 +22,7 @@ from ffcgs_jax.learn.config import LearnConfig
 from ffcgs_jax.learning.weights import load_evaluator
 from ffcgs_jax.training import evaluator_data, evaluator_train
 
-ORDERS = (("geometric", "E", ()), ("geometric", "predictor", ("evaluator",)),
+ORDERS = (("geometric", "E", ()), ("geometric", "predictor", ("evaluator",)), ("cvae", "E", ("cvae",)),
           ("cvae", "predictor", ("cvae", "evaluator")))
 
 
@@ -31,13 +33,16 @@ def first_holds(data: evaluator_data.LabelData, score: np.ndarray) -> dict[str, 
 
 
 def scores(hand, files_: list[str], weights: str | None) -> dict[str, dict[str, bool]]:
-    """{"E": per object, "predictor": per object} over the label files `files_` (objects are named per file)."""
-    out: dict[str, dict[str, bool]] = {"E": {}, "predictor": {}}
+    """{"E", "predictor", "bound": per object} over the label files `files_` (objects are named per file);
+    "bound": some valid candidate holds."""
+    out: dict[str, dict[str, bool]] = {"E": {}, "predictor": {}, "bound": {}}
     net = load_evaluator(weights, hand)[0] if weights else None
     for f in files_:
         data = evaluator_data.load(f, hand, progress=False, held_out=True)
         tag = Path(f).stem
         out["E"].update({f"{tag}/{k}": v for k, v in first_holds(data, -data.E).items()})
+        holds = evaluator_data.positives(data)[:, -1].astype(float)  # holders first: the best a ranker can do
+        out["bound"].update({f"{tag}/{k}": v for k, v in first_holds(data, holds).items()})
         if net is not None:
             p = evaluator_train.predict_rows(net, data.x)[:, -1]
             out["predictor"].update({f"{tag}/{k}": v for k, v in first_holds(data, p).items()})
@@ -57,12 +62,13 @@ def write(cfg: LearnConfig, hand, work: Path, stages: dict) -> dict:
         got = (geo if sampler == "geometric" else learned)[order]
         rows.append({"sampler": sampler, "order": order, "parts": list(parts), "first_holds": sum(got.values()),
                      "objects": n})
+    install, best = choose(rows)
     base = rows[0]["first_holds"]
-    best = max(rows, key=lambda r: (r["first_holds"], -len(r["parts"])))
-    install = best["parts"] if best["first_holds"] > base else []
+    bound = {"geometric": sum(geo["bound"].values())} | ({"cvae": sum(learned["bound"].values())} if learned else {})
     weights = {"cvae": stages["cvae"]["weights"], "evaluator": predictor}
     trained = stages["plan"]["objects"] + stages["plan"].get("folder_objects", 0)  # a folder planned before: 0
-    rep = {"hand": hand.spec.name, "held_out_objects": n, "rows": rows, "install": install, "weights": weights,
+    rep = {"hand": hand.spec.name, "held_out_objects": n, "rows": rows, "bound": bound, "install": install,
+           "weights": weights,
            "train_objects": trained, "per_object": cfg.per_object,
            "cvae_epochs": stages["cvae"].get("epochs"), "predictor_epochs": stages["predictor"]["epochs"]}
     files.write_text(work / "report.json", json.dumps(rep, indent=1))
@@ -72,6 +78,13 @@ def write(cfg: LearnConfig, hand, work: Path, stages: dict) -> dict:
                else "the geometric sampler ranked by E stays: the learned parts did not beat it")
     return rep | {"say": f"report in {work / 'report.md'}: {verdict} "
                          f"({best['first_holds']} against {base} of {n} held-out first grasps hold)"}
+
+
+def choose(rows: list[dict]) -> tuple[list[str], dict]:
+    """(the parts to install, the best row): the best order's parts when it beats the baseline (the first row);
+    among equals the fewest parts, since a part that adds nothing is one more thing to go stale."""
+    best = max(rows, key=lambda r: (r["first_holds"], -len(r["parts"])))
+    return (list(best["parts"]) if best["first_holds"] > rows[0]["first_holds"] else []), best
 
 
 def markdown(rep: dict) -> str:
@@ -85,6 +98,10 @@ def markdown(rep: dict) -> str:
     for r in rep["rows"]:
         lines.append(f"| {r['sampler']} | {r['order']} | {r['first_holds']} / {r['objects']} "
                      f"({r['first_holds'] / max(r['objects'], 1):.0%}) |")
+    bound = rep.get("bound", {})
+    if bound:
+        lines += ["", "A perfect ranker of the same candidates (some valid candidate holds): " + ", ".join(
+            f"{k} {v} / {rep['held_out_objects']}" for k, v in bound.items()) + "."]
     lines += ["", f"Installed: {', '.join(rep['install'])}." if rep["install"] else
               "Installed: nothing. The learned parts did not beat the geometric sampler ranked by E on the held-out "
               "objects, so the hand keeps it."]
@@ -103,6 +120,12 @@ def picture(rep: dict, png: Path) -> Path | None:
     names = [f"{r['sampler']}\n+ {r['order']}" for r in rep["rows"]]
     share = [r["first_holds"] / max(r["objects"], 1) for r in rep["rows"]]
     ax.bar(names, share, color=["gray"] + ["tab:blue"] * (len(names) - 1))
+    for i, r in enumerate(rep["rows"]):  # the sampler's bound: what a perfect ranker of its candidates gets
+        if r["sampler"] in rep.get("bound", {}):
+            ax.hlines(rep["bound"][r["sampler"]] / max(r["objects"], 1), i - 0.4, i + 0.4, colors="black",
+                      linestyles="dashed", label="perfect ranker" if i == 0 else None)
+    if rep.get("bound"):
+        ax.legend(loc="upper right", fontsize=8)
     ax.set(ylim=(0, 1), ylabel="first grasp holds", title=f"{rep['hand']}: {rep['held_out_objects']} held-out objects")
     fig.tight_layout()
     with files.atomic_path(png) as tmp:

@@ -13,7 +13,7 @@ from ffcgs_jax.core.errors import FfcgsError
 from ffcgs_jax.dataset import mcap_io
 from ffcgs_jax.dataset.objects import sources
 from ffcgs_jax.hand import kinematics as K
-from ffcgs_jax.learn import pipeline, plan
+from ffcgs_jax.learn import pipeline, plan, report
 from ffcgs_jax.learn.config import LearnConfig
 from ffcgs_jax.learning import checkpoint, weights
 from ffcgs_jax.physics.config import PhysicsConfig, RobustConfig
@@ -118,11 +118,47 @@ def test_objects_are_scaled_to_the_hand_and_held_out_apart():
 def test_the_budget_counts_the_seconds_of_earlier_processes(tmp_path):
     """A resumed run plans with what its stages took, not with how long this process has run."""
     state = pipeline.State(tmp_path, "h", {})
-    state.finish("check", {"seconds": 60.0})
-    state.finish("held_geometric", {"seconds_per_object": 10.0, "seconds": 540.0})
+    state.finish("check", {}, 60.0)
+    state.finish("held_geometric", {"seconds_per_object": 10.0}, 540.0)
     got = pipeline.planned(LearnConfig(minutes=60.0, train_objects=10_000), state)
     assert got["objects"] == plan.fitting_objects(LearnConfig(minutes=60.0, train_objects=10_000), 10.0, 600.0)[0]
     assert got["objects"] == int(0.6 * (3600 - 600) / 10)
+
+
+def test_an_interrupted_stage_keeps_its_seconds_for_the_budget(tmp_path, monkeypatch):
+    """A stage killed by `timeout` (SIGTERM) or Ctrl-C records the seconds it ran: the labels of a 60 min run on one
+    H200 went in 10 min pieces, and without them the plan would have counted only the last piece."""
+    import os
+    import signal
+    import threading
+    import time
+
+    if threading.current_thread() is not threading.main_thread():
+        pytest.skip("signals reach the main thread only")
+    before = signal.getsignal(signal.SIGTERM)
+    with pytest.raises(KeyboardInterrupt), pipeline.sigterm_interrupts():
+        os.kill(os.getpid(), signal.SIGTERM)
+        time.sleep(5)  # the handler raises before this ends
+    assert signal.getsignal(signal.SIGTERM) is before
+
+    def killed(*a, **k):
+        time.sleep(0.3)
+        os.kill(os.getpid(), signal.SIGTERM)
+        time.sleep(5)
+
+    cfg = LearnConfig(hand=str(TOY / "toy.toml"), out=str(tmp_path / "w"))
+    monkeypatch.setattr(pipeline, "check", killed)
+    for _ in range(2):
+        with pytest.raises(KeyboardInterrupt):
+            pipeline.learn_hand(cfg, progress=False)
+    state = json.loads((tmp_path / "w" / "state.json").read_text())
+    assert state["stages"] == {} and 0.6 <= state["interrupted"]["check"] < 5
+    spent = pipeline.spent(pipeline.State(tmp_path / "w", state["hand_sha256"], state["settings"]))
+    assert spent == state["interrupted"]["check"]
+    monkeypatch.setattr(pipeline, "check", lambda *a: {"say": ""})
+    pipeline.learn_hand(cfg, progress=False, stop_after="check")
+    state = json.loads((tmp_path / "w" / "state.json").read_text())
+    assert state["interrupted"] == {} and state["stages"]["check"]["seconds"] >= 0.6
 
 
 def test_the_folders_training_objects_count_against_the_budget(tmp_path):
@@ -139,8 +175,8 @@ def test_the_folders_training_objects_count_against_the_budget(tmp_path):
     assert n == fit - 8 and f"{fit} training objects (8 of the folder, {fit - 8} generated)" in why
     (tmp_path / "w").mkdir()
     state = pipeline.State(tmp_path / "w", "h", {})
-    state.finish("check", {"seconds": 60.0})
-    state.finish("held_geometric", {"seconds_per_object": 10.0, "seconds": 540.0})
+    state.finish("check", {}, 60.0)
+    state.finish("held_geometric", {"seconds_per_object": 10.0}, 540.0)
     assert pipeline.planned(cfg, state) | {"say": ""} == {"objects": fit - 8, "folder_objects": 8, "say": ""}
     # a folder larger than the budget holds is labelled whole, and the line says the run will take longer
     n, why = plan.fitting_objects(cfg, 300.0, 600.0, 8)
@@ -184,3 +220,16 @@ def test_a_budget_chooses_the_epochs_that_fit_and_says_so(tmp_path, monkeypatch)
     first = pipeline.epochs(cfg, tmp_path, "cvae", 40, 20_000, "sampler x", 1800.0, progress=False)
     assert first == int(1800 * 0.15 / 0.4 // (20_000 * step_cost.PRIOR["sampler"])) == 4
     assert pipeline.epochs(cfg, tmp_path, "cvae", 40, 20_000, "sampler x", 3000.0, progress=False) == first
+
+
+def test_the_report_installs_the_best_parts_and_the_fewest_on_a_tie():
+    def rows(*holds):
+        return [{"sampler": s, "order": o, "parts": list(p), "first_holds": h, "objects": 48}
+                for (s, o, p), h in zip(report.ORDERS, holds)]  # 3 holds: a run without CVAE
+
+    # the Allegro's run of 2026-11-29 (one H200): the CVAE helps E (20 against 9) but not the predictor (24 against 25)
+    assert report.choose(rows(9, 25, 20, 24))[0] == ["evaluator"]
+    assert report.choose(rows(9, 20, 25, 24))[0] == ["cvae"]
+    assert report.choose(rows(9, 25, 20, 25))[0] == ["evaluator"]  # a tie: the part that adds nothing stays out
+    assert report.choose(rows(9, 9, 9, 9))[0] == []  # nothing beats the baseline: the hand keeps it
+    assert report.choose(rows(9, 5, 8))[0] == []  # no CVAE row when none was learned
