@@ -15,8 +15,8 @@ Each stage records its result and its seconds in OUT/state.json when it ends, an
 `timeout` or a job scheduler's SIGTERM) records the seconds it had run: the budget counts both, so a resumed run
 plans with the time its earlier processes spent, and a stage's seconds are its whole time over them. The builds
 keep every finished object in their parts folders and the trainings checkpoint every epoch, so a killed run,
-started again with the same command, ends where an uninterrupted one would. A folder started for another version of the hand, or with other settings,
-is refused in one line.
+started again with the same command, ends where an uninterrupted one would. A folder started for another version
+of the hand, or with other settings, is refused in one line.
 """
 
 import contextlib

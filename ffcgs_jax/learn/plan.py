@@ -3,9 +3,9 @@ how many training objects fit its time budget.
 
 Objects are scaled to the hand: the SVH's training shapes are 0.8-1.2 of their generated size, and another hand's
 are that times the ratio of its span to the SVH's (the farthest fingertip contact from the palm, open hand), so a
-hand half the SVH's size grasps shapes half the size. The held-out objects are the folder's test split and complex shapes of
-`config.HELD_OUT_SEED`, never a training seed (the dataset refuses held-out seeds without `allow_test`, and the
-run checks that no held-out object shares a name or geometry with a training one).
+hand half the SVH's size grasps shapes half the size. The held-out objects are the folder's test split and complex
+shapes of `config.HELD_OUT_SEED`, never a training seed (the dataset refuses held-out seeds without `allow_test`,
+and the run checks that no held-out object shares a name or geometry with a training one).
 """
 
 import dataclasses
