@@ -138,7 +138,7 @@ def _interrupted(signum, frame) -> None:
     if files is not None:  # not loaded yet: no file written yet
         files.discard_temporaries()
     os.write(2, b"\nffcgs: interrupted\n")  # a new line: a progress bar may be half-way through its own
-    os._exit(130)
+    os._exit(128 + signum)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -147,14 +147,15 @@ def main(argv: list[str] | None = None) -> int:
         from ffcgs_jax.cli import train_command
 
         return train_command.main(argv[1:])
-    previous = signal.signal(signal.SIGINT, _interrupted) if threading.current_thread() is threading.main_thread() \
-        else None
+    # SIGTERM too (`timeout`, a job scheduler): Python's default would end the process without cleaning up
+    caught = (signal.SIGINT, signal.SIGTERM) if threading.current_thread() is threading.main_thread() else ()
+    previous = {sig: signal.signal(sig, _interrupted) for sig in caught}
     try:
         warnings.showwarning = _one_line_warning  # a user needs the message, not our source line
         return _run(argv)
     finally:
-        if previous is not None:
-            signal.signal(signal.SIGINT, previous)
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
 
 
 def _run(argv: list[str]) -> int:

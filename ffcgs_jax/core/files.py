@@ -87,9 +87,27 @@ def check_folder(path: str | Path, what: str = "output folder") -> Path:
 _ACTIVE: set[Path] = set()  # temporary files and folders being written now, for `discard_temporaries`
 
 
+_LAST_WORDS: list = []  # callables for `discard_temporaries` to run first (`last_words`)
+
+
+@contextlib.contextmanager
+def last_words(record):
+    """While the block runs, a process that exits at once (`discard_temporaries`) calls `record()` first: what a
+    `finally` would have written, such as the seconds a stage ran (`learn.pipeline`)."""
+    _LAST_WORDS.append(record)
+    try:
+        yield
+    finally:
+        _LAST_WORDS.remove(record)
+
+
 def discard_temporaries() -> None:
-    """Remove the temporary files of writes in progress, and the lock files of locks held: for a process about to
-    exit at once (the CLI's SIGINT), which runs no `finally` blocks (the kernel releases the locks themselves)."""
+    """Run the `last_words`, then remove the temporary files of writes in progress and the lock files of locks held:
+    for a process about to exit at once (the CLI's SIGINT and SIGTERM), which runs no `finally` blocks (the kernel
+    releases the locks themselves)."""
+    for record in reversed(_LAST_WORDS):
+        with contextlib.suppress(Exception):  # the exit goes on whatever a record meets
+            record()
     for tmp in list(_ACTIVE):
         _remove(tmp)
     locks.discard_held()

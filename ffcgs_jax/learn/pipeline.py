@@ -19,14 +19,11 @@ started again with the same command, ends where an uninterrupted one would. A fo
 of the hand, or with other settings, is refused in one line.
 """
 
-import contextlib
 import dataclasses
 import errno
 import json
 import shutil
-import signal
 import statistics
-import threading
 import time
 from pathlib import Path
 
@@ -115,43 +112,29 @@ def learn_hand(cfg: LearnConfig = LearnConfig(), progress: bool = True, stop_aft
         "report": lambda: report.write(cfg, hand, work, state.data["stages"]),
         "install": lambda: install(cfg, hand, work, state.done("report")),
     }
-    with sigterm_interrupts():
-        for i, stage in enumerate(STAGES):
-            if state.done(stage) is None:
-                say(f"stage {i + 1}/{len(STAGES)}: {stage}")
-                t0 = time.perf_counter()
-                try:
+    for i, stage in enumerate(STAGES):
+        if state.done(stage) is None:
+            say(f"stage {i + 1}/{len(STAGES)}: {stage}")
+            t0 = time.perf_counter()
+
+            def record_interrupted(stage=stage, t0=t0):
+                state.interrupted(stage, time.perf_counter() - t0)
+
+            try:  # the CLI's Ctrl-C and SIGTERM end the process at once: the record goes with its last words
+                with files.last_words(record_interrupted):
                     result = runs[stage]()
-                except BaseException as e:
-                    state.interrupted(stage, time.perf_counter() - t0)
-                    if isinstance(e, OSError) and e.errno == errno.ENOSPC:
-                        raise FfcgsError(f"the disk is full (stage {stage}, in {work}); free some space and run "
-                                         "the same command again: it resumes") from None
-                    raise
-                result = state.finish(stage, result, time.perf_counter() - t0)
-                if result.get("say"):
-                    say(result["say"])
-            if stage == stop_after:
-                break
+            except BaseException as e:  # an error, or Ctrl-C in Python (KeyboardInterrupt)
+                record_interrupted()
+                if isinstance(e, OSError) and e.errno == errno.ENOSPC:
+                    raise FfcgsError(f"the disk is full (stage {stage}, in {work}); free some space and run the "
+                                     "same command again: it resumes") from None
+                raise
+            result = state.finish(stage, result, time.perf_counter() - t0)
+            if result.get("say"):
+                say(result["say"])
+        if stage == stop_after:
+            break
     return state.data["stages"].get("report", {}) | {"installed": (state.done("install") or {}).get("installed")}
-
-
-@contextlib.contextmanager
-def sigterm_interrupts():
-    """SIGTERM (`timeout`, a scheduler ending a job) raises KeyboardInterrupt while the stages run, so the stage
-    records its seconds before the process ends; Python's default would end it at once. Main thread only."""
-    if threading.current_thread() is not threading.main_thread():
-        yield
-        return
-
-    def interrupt(signum, frame):
-        raise KeyboardInterrupt(f"signal {signum}")
-
-    old = signal.signal(signal.SIGTERM, interrupt)
-    try:
-        yield
-    finally:
-        signal.signal(signal.SIGTERM, old)
 
 
 def check(cfg: LearnConfig, hand: K.Hand) -> dict:

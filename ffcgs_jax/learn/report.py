@@ -39,13 +39,12 @@ def scores(hand, files_: list[str], weights: str | None) -> dict[str, dict[str, 
     net = load_evaluator(weights, hand)[0] if weights else None
     for f in files_:
         data = evaluator_data.load(f, hand, progress=False, held_out=True)
-        tag = Path(f).stem
-        out["E"].update({f"{tag}/{k}": v for k, v in first_holds(data, -data.E).items()})
-        holds = evaluator_data.positives(data)[:, -1].astype(float)  # holders first: the best a ranker can do
-        out["bound"].update({f"{tag}/{k}": v for k, v in first_holds(data, holds).items()})
+        order = {"E": -data.E,
+                 "bound": evaluator_data.positives(data)[:, -1].astype(float)}  # holders first: the best ranker
         if net is not None:
-            p = evaluator_train.predict_rows(net, data.x)[:, -1]
-            out["predictor"].update({f"{tag}/{k}": v for k, v in first_holds(data, p).items()})
+            order["predictor"] = evaluator_train.predict_rows(net, data.x)[:, -1]
+        for kind, score in order.items():
+            out[kind].update({f"{Path(f).stem}/{k}": v for k, v in first_holds(data, score).items()})
     return out
 
 
@@ -68,8 +67,7 @@ def write(cfg: LearnConfig, hand, work: Path, stages: dict) -> dict:
     weights = {"cvae": stages["cvae"]["weights"], "evaluator": predictor}
     trained = stages["plan"]["objects"] + stages["plan"].get("folder_objects", 0)  # a folder planned before: 0
     rep = {"hand": hand.spec.name, "held_out_objects": n, "rows": rows, "bound": bound, "install": install,
-           "weights": weights,
-           "train_objects": trained, "per_object": cfg.per_object,
+           "weights": weights, "train_objects": trained, "per_object": cfg.per_object,
            "cvae_epochs": stages["cvae"].get("epochs"), "predictor_epochs": stages["predictor"]["epochs"]}
     files.write_text(work / "report.json", json.dumps(rep, indent=1))
     files.write_text(work / "report.md", markdown(rep))

@@ -83,3 +83,23 @@ def test_read_npz_refuses_pickles_and_broken_zips_and_reads_npy(tmp_path):
         files.read_npz(tmp_path / "poses.npy")
     with pytest.raises(FfcgsError, match="pose file not found"):
         files.read_npz(tmp_path / "none.npy", "pose file", npy=True)
+
+
+def test_last_words_run_before_the_temporaries_go_and_only_while_their_block_runs(tmp_path):
+    """A process that exits at once (the CLI's SIGINT, SIGTERM) still writes what its `last_words` record: a record
+    that fails does not stop the others, nor the cleanup."""
+    said = []
+
+    def fails():
+        raise OSError("the disk went away")
+
+    with files.last_words(lambda: files.write_text(tmp_path / "said.txt", "stage: 12.5 s")), files.last_words(fails):
+        with pytest.raises(RuntimeError), files.atomic_path(tmp_path / "half.npz") as tmp:
+            tmp.write_bytes(b"half")
+            files.discard_temporaries()
+            raise RuntimeError("stop here")
+    assert (tmp_path / "said.txt").read_text() == "stage: 12.5 s" and sorted(os.listdir(tmp_path)) == ["said.txt"]
+    with files.last_words(lambda: said.append(1)):
+        pass
+    files.discard_temporaries()
+    assert said == []  # the block ended: nothing left to say
