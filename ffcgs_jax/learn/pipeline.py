@@ -103,12 +103,12 @@ def learn_hand(cfg: LearnConfig = LearnConfig(), progress: bool = True, stop_aft
     say = (lambda m: print(f"ffcgs learn: {m}", flush=True)) if progress else (lambda m: None)
     runs = {
         "check": lambda: check(cfg, hand),
-        "held_geometric": lambda: held_labels(cfg, hand, work, "geometric", progress),
+        "held_geometric": lambda: held_labels(cfg, scaled(state), work, "geometric", progress),
         "plan": lambda: planned(cfg, state),
-        "labels": lambda: labels(cfg, hand, work, state.done("plan")["objects"], progress),
+        "labels": lambda: labels(cfg, scaled(state), work, state.done("plan")["objects"], progress),
         "cvae": lambda: train_cvae(cfg, hand, work, spent(state), progress),
         "predictor": lambda: train_predictor(cfg, hand, work, spent(state), progress),
-        "held_learned": lambda: held_learned(cfg, hand, work, state, progress),
+        "held_learned": lambda: held_learned(cfg, work, state, progress),
         "report": lambda: report.write(cfg, hand, work, state.data["stages"]),
         "install": lambda: install(cfg, hand, work, state.done("report")),
     }
@@ -156,14 +156,20 @@ def _build(dc, progress: bool) -> dict:
     return {"out": str(out["out"]), "built": out["built"], "timing": out["timing"]}
 
 
-def held_labels(cfg: LearnConfig, hand: K.Hand, work: Path, sampler: str, progress: bool, grasp=None) -> dict:
-    builds = plan.held_out(cfg, hand, str(work / f"held_{sampler}.mcap"), sampler, grasp)
+def held_labels(cfg: LearnConfig, scale: float, work: Path, sampler: str, progress: bool, grasp=None) -> dict:
+    builds = plan.held_out(cfg, scale, str(work / f"held_{sampler}.mcap"), sampler, grasp)
     done = [_build(dc, progress) for dc in builds]
     rows = [json.loads(line) for d in done for line in Path(d["timing"]).read_text().splitlines() if line.strip()]
     # the first object of a process pays the compiles: the others say what one more object costs
     per_object = statistics.median(r["total_s"] for r in (rows[1:] or rows)) if rows else 0.0
     return {"files": [d["out"] for d in done], "seconds_per_object": per_object,
             "objects": sorted({r["object"] for r in rows})}
+
+
+def scaled(state: State) -> float:
+    """The object scale the check stage chose: every later stage, in any process, builds with this one number (a
+    rerun of the forward kinematics would cost a resumed process its compiles, and could differ in the last bit)."""
+    return float(state.done("check")["scale"])
 
 
 def spent(state: State) -> float:
@@ -194,9 +200,9 @@ def epochs(cfg: LearnConfig, work: Path, stage: str, most: int, steps_per_epoch:
     return n
 
 
-def labels(cfg: LearnConfig, hand: K.Hand, work: Path, count: int, progress: bool) -> dict:
-    dc = plan.training(cfg, hand, str(work / "labels.mcap"), count)
-    held = {s.sha256 for h in plan.held_out(cfg, hand, str(work / "held_geometric.mcap")) for s in sources(h)}
+def labels(cfg: LearnConfig, scale: float, work: Path, count: int, progress: bool) -> dict:
+    dc = plan.training(cfg, scale, str(work / "labels.mcap"), count)
+    held = {s.sha256 for h in plan.held_out(cfg, scale, str(work / "held_geometric.mcap")) for s in sources(h)}
     shared = [s.name for s in sources(dc) if s.sha256 in held]
     if shared:  # the report would measure objects the networks learned
         raise FfcgsError(f"training objects {shared[:3]} are also held out; use another --seed or --objects folder")
@@ -243,12 +249,12 @@ def train_predictor(cfg: LearnConfig, hand: K.Hand, work: Path, spent_s: float, 
             "say": f"success predictor trained on {summary['train_grasps']} labels, {n} epochs"}
 
 
-def held_learned(cfg: LearnConfig, hand: K.Hand, work: Path, state: State, progress: bool) -> dict:
+def held_learned(cfg: LearnConfig, work: Path, state: State, progress: bool) -> dict:
     weights = state.done("cvae")["weights"]
     if weights is None:
         return {"files": [], "say": "no learned sampler to label on the held-out objects"}
     grasp = dataclasses.replace(cfg.grasp, sampling=dataclasses.replace(cfg.grasp.sampling, weights=weights))
-    return held_labels(cfg, hand, work, "cvae", progress, grasp)
+    return held_labels(cfg, scaled(state), work, "cvae", progress, grasp)
 
 
 def install(cfg: LearnConfig, hand: K.Hand, work: Path, rep: dict) -> dict:

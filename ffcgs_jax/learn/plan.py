@@ -37,31 +37,31 @@ def scale(hand: K.Hand) -> float:
     return float(np.clip(span(hand) / span(K.load_hand("svh")), 0.25, 4.0))
 
 
-def dataset(cfg: LearnConfig, hand: K.Hand, out: str, **kw) -> DatasetConfig:
-    """A labelled build (`keep all`, robust verdicts, three protocols) of this run: `kw` picks its objects."""
-    s = scale(hand)
+def dataset(cfg: LearnConfig, s: float, out: str, **kw) -> DatasetConfig:
+    """A labelled build (`keep all`, robust verdicts, three protocols) of this run, its objects scaled by `s` (the
+    check stage's `scale`, kept in the run's state): `kw` picks its objects."""
     base = DatasetConfig(hand=cfg.hand, out=out, keep="all", per_object=cfg.per_object, rotations=1,
                          scale_min=0.8 * s, scale_max=1.2 * s, engine=cfg.engine, address=cfg.address,
                          grasp=cfg.grasp, physics=cfg.physics, sampler="geometric")
     return dataclasses.replace(base, **kw)
 
 
-def training(cfg: LearnConfig, hand: K.Hand, out: str, count: int) -> DatasetConfig:
+def training(cfg: LearnConfig, s: float, out: str, count: int) -> DatasetConfig:
     simple = int(round(count * SIMPLE_SHARE))
-    return dataset(cfg, hand, out, objects=cfg.objects, split="train", procedural=simple, complex=count - simple,
+    return dataset(cfg, s, out, objects=cfg.objects, split="train", procedural=simple, complex=count - simple,
                    seed=cfg.seed)
 
 
-def held_out(cfg: LearnConfig, hand: K.Hand, out: str, sampler: str = "geometric", grasp=None) -> list[DatasetConfig]:
+def held_out(cfg: LearnConfig, s: float, out: str, sampler: str = "geometric", grasp=None) -> list[DatasetConfig]:
     """The report's held-out builds: the folder's test split (when there is a folder) and the held-out complex
-    shapes, with candidates from `sampler`."""
+    shapes, scaled by `s`, with candidates from `sampler`."""
     kw = dict(sampler=sampler, allow_test=True, **({"grasp": grasp} if grasp is not None else {}))
     out_stem = out.removesuffix(".mcap")
     builds = []
     if cfg.objects:
-        builds.append(dataset(cfg, hand, f"{out_stem}_test.mcap", objects=cfg.objects, split="test", **kw))
+        builds.append(dataset(cfg, s, f"{out_stem}_test.mcap", objects=cfg.objects, split="test", **kw))
     if cfg.held_out:
-        builds.append(dataset(cfg, hand, f"{out_stem}_complex.mcap", split="train", complex=cfg.held_out,
+        builds.append(dataset(cfg, s, f"{out_stem}_complex.mcap", split="train", complex=cfg.held_out,
                               seed=HELD_OUT_SEED, **kw))
     if not builds:
         raise FfcgsError("the report needs held-out objects: --held-out N (complex shapes) or --objects with a test "

@@ -13,6 +13,7 @@ from ffcgs_jax.core.errors import FfcgsError
 from ffcgs_jax.dataset import mcap_io
 from ffcgs_jax.dataset.objects import sources
 from ffcgs_jax.hand import kinematics as K
+from ffcgs_jax.hand.identity import spec_sha256
 from ffcgs_jax.learn import pipeline, plan, report
 from ffcgs_jax.learn.config import LearnConfig
 from ffcgs_jax.learning import checkpoint, weights
@@ -108,9 +109,9 @@ def test_objects_are_scaled_to_the_hand_and_held_out_apart():
     assert plan.scale(svh) == pytest.approx(1.0)
     assert plan.scale(allegro) > 1.2  # the Allegro's fingers are longer: larger objects
     cfg = LearnConfig(hand="svh", train_objects=8, held_out=3)
-    train = plan.training(cfg, svh, "t.mcap", 8)
+    train = plan.training(cfg, plan.scale(svh), "t.mcap", 8)
     assert (train.procedural, train.complex) == (2, 6) and not train.allow_test
-    held = plan.held_out(cfg, svh, "h.mcap")
+    held = plan.held_out(cfg, plan.scale(svh), "h.mcap")
     assert [h.complex for h in held] == [3] and held[0].seed != train.seed
     assert not {s.sha256 for s in sources(train)} & {s.sha256 for h in held for s in sources(h)}
 
@@ -170,6 +171,32 @@ def test_an_interrupted_stage_keeps_its_seconds_for_the_budget(tmp_path, monkeyp
     assert state["stages"] == {} and state["interrupted"]["check"] >= 0.3
 
 
+def test_a_resumed_run_builds_with_the_scale_its_check_chose(tmp_path, monkeypatch):
+    """The later stages take the object scale from state.json: a resumed process pays no forward-kinematics compile
+    (about 100 s in each 10 min piece of the Allegro's run on one H200, with the shapes' generation), and its objects
+    are the ones of the earlier processes to the last bit."""
+    cfg = LearnConfig(hand=str(TOY / "toy.toml"), out=str(tmp_path / "w"), held_out=2)
+    (tmp_path / "w").mkdir()
+    state = pipeline.State(tmp_path / "w", spec_sha256(K.load_hand(cfg.hand).spec), pipeline.settings_of(cfg))
+    state.finish("check", {"scale": 0.7}, 1.0)
+    state.finish("held_geometric", {"seconds_per_object": 1.0}, 1.0)
+    state.finish("plan", {"objects": 4}, 0.0)
+    built = []
+
+    def build(dc, show_progress=True):
+        built.append(dc)
+        return {"out": dc.out, "built": 4, "timing": str(tmp_path / "timing.jsonl")}
+
+    def no_kinematics(hand):
+        raise AssertionError("the scale was computed again")
+
+    monkeypatch.setattr(pipeline.dataset_build, "build", build)
+    monkeypatch.setattr(plan, "scale", no_kinematics)
+    pipeline.learn_hand(cfg, progress=False, stop_after="labels")
+    assert [(d.scale_min, d.scale_max) for d in built] == [(0.8 * 0.7, 1.2 * 0.7)]
+    assert json.loads((tmp_path / "w" / "state.json").read_text())["stages"]["labels"]["built"] == 4
+
+
 def test_the_folders_training_objects_count_against_the_budget(tmp_path):
     """The --objects folder's train split is labelled whole beside the generated shapes, so the plan counts it: on
     one H200 a 19 min run planned 65 objects and labelled 101, its folder's 36 unseen (2026-11-29)."""
@@ -202,7 +229,7 @@ def test_bad_input_is_one_line(tmp_path, monkeypatch):
     with pytest.raises(FfcgsError, match="hand spec|not found|unknown built-in hand"):
         pipeline.learn_hand(LearnConfig(hand=str(tmp_path / "nope.toml"), out=str(tmp_path / "x")), progress=False)
     with pytest.raises(FfcgsError, match="held-out objects"):
-        plan.held_out(LearnConfig(held_out=0), K.load_hand("svh"), "h.mcap")
+        plan.held_out(LearnConfig(held_out=0), 1.0, "h.mcap")
 
     def full(*a, **k):
         raise OSError(errno.ENOSPC, "No space left on device")
