@@ -173,8 +173,8 @@ def test_an_interrupted_stage_keeps_its_seconds_for_the_budget(tmp_path, monkeyp
 
 def test_a_resumed_run_builds_with_the_scale_its_check_chose(tmp_path, monkeypatch):
     """The later stages take the object scale from state.json: a resumed process pays no forward-kinematics compile
-    (about 100 s in each 10 min piece of the Allegro's run on one H200, with the shapes' generation), and its objects
-    are the ones of the earlier processes to the last bit."""
+    (27 of the 38 s that the Allegro's resumed labels stage took to reach its first object on the 2-core CPU), and
+    its objects are the ones of the earlier processes to the last bit."""
     cfg = LearnConfig(hand=str(TOY / "toy.toml"), out=str(tmp_path / "w"), held_out=2)
     (tmp_path / "w").mkdir()
     state = pipeline.State(tmp_path / "w", spec_sha256(K.load_hand(cfg.hand).spec), pipeline.settings_of(cfg))
