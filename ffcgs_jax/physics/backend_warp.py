@@ -56,6 +56,26 @@ def no_cuda() -> str | None:
     return None if wp.get_cuda_device_count() > 0 else "Warp finds no CUDA device"
 
 
+def put_model(m: mujoco.MjModel, **kw):
+    """MuJoCo Warp's model of `m` (`kw`: `mujoco_warp.put_model`'s), its overflow printf off: a world that overflows
+    is flagged (`untrusted_overflows`) and run again on the CPU, and the runner says so in one warning line, where
+    the printf put 2 lines per world on the terminal, over 1,000 for an object that overflows in every trial."""
+    import mujoco_warp as mjw
+
+    model = mjw.put_model(m, **kw)
+    model.opt.warn_overflow = 0
+    return model
+
+
+def untrusted_overflows() -> int:
+    """The `Data.overflow` bits of a world whose simulation dropped contacts or constraint rows: never scored."""
+    import mujoco_warp as mjw
+
+    bits = mjw.OverflowType
+    return int(bits.NEFC | bits.NJMAX_NNZ | bits.BROADPHASE | bits.NARROWPHASE | bits.CCD | bits.NVMAX
+               | bits.EPA_HORIZON)
+
+
 def buffer_sizes(scene: PhysicsScene) -> tuple[int, int]:
     """(contacts, constraint rows) to allocate per world. Every hand geom may touch the object (several points
     for a box or a mesh part) and the table; each contact takes condim rows (elliptic cones) or 2 (condim - 1)
@@ -140,12 +160,9 @@ class WarpSim:
         self.device = wp.get_device(device)
         self._wp, self._mjw = wp, mjw
         self._inputs, self._advance = _kernels()
-        bits = mjw.OverflowType
-        self._bad = int(bits.NEFC | bits.NJMAX_NNZ | bits.BROADPHASE | bits.NARROWPHASE | bits.CCD | bits.NVMAX
-                        | bits.EPA_HORIZON)
+        self._bad = untrusted_overflows()
         with wp.ScopedDevice(self.device):
-            self.m = mjw.put_model(m)
-            self.m.opt.warn_overflow = 0  # `flagged` and the runner's one warning say it: no printf per world
+            self.m = put_model(m)
         self._worlds: dict[int, _Worlds] = {}
 
     def _size(self, n: int) -> int:

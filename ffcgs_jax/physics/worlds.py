@@ -43,7 +43,7 @@ from ffcgs_jax.physics import protocols as P
 from ffcgs_jax.physics import world_kernels as K
 from ffcgs_jax.physics import world_model
 from ffcgs_jax.physics.backend import MAX_SPEED, Batch, route_mujoco_warnings
-from ffcgs_jax.physics.backend_warp import unavailable
+from ffcgs_jax.physics.backend_warp import put_model, unavailable, untrusted_overflows
 from ffcgs_jax.physics.config import PhysicsConfig
 from ffcgs_jax.physics.scene import PhysicsScene
 from ffcgs_jax.physics.world_programs import Block, JobState, Layout, Schedule, Stats
@@ -117,9 +117,7 @@ class Engine:
         self.nconmax, self.njmax = buffer_sizes(self.scene)
         self.device = wp.get_device(device)
         self.k = K.build(float(MAX_SPEED))
-        bits = mjw.OverflowType
-        self.bad_overflow = int(bits.NEFC | bits.NJMAX_NNZ | bits.BROADPHASE | bits.NARROWPHASE | bits.CCD
-                                | bits.NVMAX | bits.EPA_HORIZON)
+        self.bad_overflow = untrusted_overflows()
         gclass = np.zeros(m.ngeom, np.int32)
         gclass[self.scene.hand_geoms] = K.HAND
         gclass[self.scene.obj_geoms] = K.OBJECT
@@ -129,9 +127,8 @@ class Engine:
         self.obj_dof = int(m.jnt_dofadr[m.body_jntadr[obj]])
         self.qpos0 = np.array(m.qpos0)
         with wp.ScopedDevice(self.device):
-            self.m = mjw.put_model(m, batch_sizes=dict.fromkeys(BATCHED, self.nworld))
+            self.m = put_model(m, batch_sizes=dict.fromkeys(BATCHED, self.nworld))
             self.m.opt.gravity = wp.zeros(self.nworld, dtype=wp.vec3)
-            self.m.opt.warn_overflow = 0  # `flagged` and the runner's one warning say it: no printf per world
             for item in filter(None, os.environ.get("FFCGS_WARP_SOLVER", "").split(",")):  # bench experiments
                 k, _, v = item.partition("=")
                 if k == "tolerance":
