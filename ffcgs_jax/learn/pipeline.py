@@ -40,12 +40,15 @@ from ffcgs_jax.learning.config import ModelConfig
 from ffcgs_jax.learning.weights import installed_dir
 
 STAGES = ("check", "held_geometric", "plan", "labels", "cvae", "predictor", "held_learned", "report", "install")
+READS = {"cvae": ("labels",), "predictor": ("labels",), "held_learned": ("cvae",),  # earlier stages' files
+         "report": ("held_geometric", "cvae", "predictor", "held_learned"), "install": ("report",)}
 
 
 class State:
     """OUT/state.json: the hand's identity, the settings, and each finished stage's result."""
 
     def __init__(self, work: Path, hand_sha: str, settings: dict):
+        self.work = work
         self.path = work / "state.json"
         self.data = {"hand_sha256": hand_sha, "settings": settings, "stages": {}}
         if self.path.is_file():
@@ -61,15 +64,39 @@ class State:
             self.data = old
 
     def done(self, stage: str) -> dict | None:
-        return self.data["stages"].get(stage)
+        """`stage`'s result, its files named from this folder wherever it is now (None: not finished)."""
+        result = self.data["stages"].get(stage)
+        return None if result is None else _paths(result, lambda p: str(self.work / p))
+
+    def stages(self) -> dict:
+        return {stage: self.done(stage) for stage in self.data["stages"]}
 
     def finish(self, stage: str, result: dict, seconds: float) -> dict:
         """Record `stage` done; its seconds are these and those of its interrupted earlier processes."""
         earlier = self.data.get("interrupted", {}).pop(stage, 0.0)
         result = result | {"seconds": round(seconds + earlier, 1)}
-        self.data["stages"][stage] = result
+        self.data["stages"][stage] = _paths(result, self.inside)
         self.save()
         return result
+
+    def inside(self, path: str) -> str:
+        """`path` relative to the folder when it is in it: a folder moved (or copied off a cluster) resumes."""
+        for p, root in ((Path(path), self.work), (Path(path).resolve(), self.work.resolve())):
+            if p.is_relative_to(root):
+                return str(p.relative_to(root))
+        return path
+
+    def check_files(self) -> None:
+        """One line if a finished stage's file that a stage still to run reads is gone: that stage would fail deep
+        inside. A file no stage will read again (labels.mcap after the trainings) may go."""
+        pending = [s for s in STAGES if self.done(s) is None]
+        for stage in sorted({n for s in pending for n in READS.get(s, ())} - set(pending)):
+            result = self.done(stage)
+            for key in ("out", "files", "weights"):
+                for path in _flat(result.get(key)):
+                    if not Path(path).exists():
+                        raise FfcgsError(f"{self.work}: stage {stage} is done, but its file {path} is missing; put "
+                                         "it back to resume, or use another --out to start again")
 
     def interrupted(self, stage: str, seconds: float) -> None:
         runs = self.data.setdefault("interrupted", {})
@@ -78,6 +105,26 @@ class State:
 
     def save(self) -> None:
         files.write_text(self.path, json.dumps(self.data, indent=1, default=str))
+
+
+PATH_KEYS = ("out", "timing", "weights", "files")  # the result keys that name files
+
+
+def _paths(result: dict, to) -> dict:
+    """`result` with `to` applied to each file it names (a string, a list of them, a dict of them, or None)."""
+    def each(v):
+        if isinstance(v, str):
+            return to(v)
+        if isinstance(v, list):
+            return [each(x) for x in v]
+        return {k: each(x) for k, x in v.items()} if isinstance(v, dict) else v
+    return {k: each(v) if k in PATH_KEYS else v for k, v in result.items()}
+
+
+def _flat(v) -> list[str]:
+    if isinstance(v, str):
+        return [v]
+    return [p for x in (v.values() if isinstance(v, dict) else v or []) for p in _flat(x)]
 
 
 def settings_of(cfg: LearnConfig) -> dict:
@@ -109,9 +156,10 @@ def learn_hand(cfg: LearnConfig = LearnConfig(), progress: bool = True, stop_aft
         "cvae": lambda: train_cvae(cfg, hand, work, spent(state), progress),
         "predictor": lambda: train_predictor(cfg, hand, work, spent(state), progress),
         "held_learned": lambda: held_learned(cfg, work, state, progress),
-        "report": lambda: report.write(cfg, hand, work, state.data["stages"]),
+        "report": lambda: report.write(cfg, hand, work, state.stages()),
         "install": lambda: install(cfg, hand, work, state.done("report")),
     }
+    state.check_files()
     for i, stage in enumerate(STAGES):
         if state.done(stage) is None:
             say(f"stage {i + 1}/{len(STAGES)}: {stage}")
@@ -134,7 +182,7 @@ def learn_hand(cfg: LearnConfig = LearnConfig(), progress: bool = True, stop_aft
                 say(result["say"])
         if stage == stop_after:
             break
-    return state.data["stages"].get("report", {}) | {"installed": (state.done("install") or {}).get("installed")}
+    return (state.done("report") or {}) | {"installed": (state.done("install") or {}).get("installed")}
 
 
 def check(cfg: LearnConfig, hand: K.Hand) -> dict:

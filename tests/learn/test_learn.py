@@ -53,10 +53,12 @@ def test_the_toy_hand_end_to_end_resumed_as_uninterrupted(tmp_path, monkeypatch)
     monkeypatch.setenv("FFCGS_HOME", str(tmp_path / "home"))
     spec = actuated_toy(tmp_path / "hand")
     cfg = small(spec, tmp_path / "a")
-    # interrupted after the training labels, then resumed: the stages before are not run again
-    pipeline.learn_hand(cfg, progress=False, stop_after="labels")
+    # interrupted after the training labels, moved (as off a cluster), then resumed: the stages before are kept
+    pipeline.learn_hand(dataclasses.replace(cfg, out=str(tmp_path / "first")), progress=False, stop_after="labels")
+    shutil.move(tmp_path / "first", tmp_path / "a")
     state = json.loads((tmp_path / "a" / "state.json").read_text())
     assert list(state["stages"]) == list(pipeline.STAGES[:4])
+    assert state["stages"]["labels"]["out"] == "labels.mcap"  # named from the folder, not where it was
     labels_mtime = (tmp_path / "a" / "labels.mcap").stat().st_mtime_ns
     rep = pipeline.learn_hand(cfg, progress=False)
     assert (tmp_path / "a" / "labels.mcap").stat().st_mtime_ns == labels_mtime
@@ -74,7 +76,8 @@ def test_the_toy_hand_end_to_end_resumed_as_uninterrupted(tmp_path, monkeypatch)
     assert not weights.installed_dir("toy").exists()
     # the held-out objects never reached training: no geometry in common, and the report's files are apart
     trained = {r.mesh_sha256 for r in mcap_io.iter_records(tmp_path / "a" / "labels.mcap")}
-    held = {r.mesh_sha256 for f in state["stages"]["held_geometric"]["files"] for r in mcap_io.iter_records(f)}
+    held = {r.mesh_sha256 for f in state["stages"]["held_geometric"]["files"]
+            for r in mcap_io.iter_records(tmp_path / "a" / f)}
     assert trained and held and not trained & held
     # a changed spec refuses the folder, and the weights it learned
     changed = actuated_toy(tmp_path / "changed", lambda t: t.replace('size="0.005"', 'size="0.007"'))
@@ -217,6 +220,27 @@ def test_the_folders_training_objects_count_against_the_budget(tmp_path):
     # a folder larger than the budget holds is labelled whole, and the line says the run will take longer
     n, why = plan.fitting_objects(cfg, 300.0, 600.0, 8)
     assert n == 0 and "longer" in why
+
+
+def test_a_finished_stages_missing_file_is_named_before_any_work(tmp_path):
+    """A resumed run whose labels were deleted before the trainings stops in one line, not in the training's reader;
+    after the trainings, and in a finished run, the labels may go."""
+    cfg = LearnConfig(hand=str(TOY / "toy.toml"), out=str(tmp_path))
+    state = pipeline.State(tmp_path, spec_sha256(K.load_hand(cfg.hand).spec), pipeline.settings_of(cfg))
+    (tmp_path / "held.mcap").write_bytes(b"")
+    state.finish("check", {"scale": 1.0}, 1.0)
+    state.finish("held_geometric", {"files": [str(tmp_path / "held.mcap")], "seconds_per_object": 1.0}, 1.0)
+    state.finish("plan", {"objects": 3}, 0.0)
+    state.finish("labels", {"out": str(tmp_path / "labels.mcap"), "timing": str(tmp_path / "gone.jsonl")}, 1.0)
+    with pytest.raises(FfcgsError, match=r"stage labels is done, but its file .*labels\.mcap is missing") as e:
+        pipeline.learn_hand(cfg, progress=False)
+    assert "\n" not in str(e.value)
+    assert json.loads((tmp_path / "state.json").read_text())["stages"]["held_geometric"]["files"] == ["held.mcap"]
+    done = {"cvae": {"weights": None}, "report": {"install": [], "weights": {"cvae": None, "evaluator": None}}}
+    for stage in pipeline.STAGES[4:-1]:
+        state.finish(stage, done.get(stage, {"files": []}), 0.0)
+    got = pipeline.learn_hand(cfg, progress=False)  # the install stage runs: it reads nothing of labels
+    assert got["installed"] is None and "labels" not in json.dumps(got)
 
 
 def test_bad_input_is_one_line(tmp_path, monkeypatch):
